@@ -1,0 +1,173 @@
+"""Scene arrays: the whole scene as flat triangle arrays, the engine's only view of Blender data.
+
+The Blender layer (``operators/extract.py``) fills a :class:`SceneArrays` from the evaluated
+depsgraph; tests and benchmarks build them directly (see :mod:`lmdp_addon.scenes`).
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import SceneError
+
+#: Rec.709 / sRGB-linear luminance weights.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def luminance(rgb):
+    """Rec.709 luminance of ``rgb (..., 3)`` linear values."""
+    return np.asarray(rgb, dtype=np.float64) @ LUMINANCE
+
+
+@dataclass
+class SceneArrays:
+    """All geometry of a scene in world space.
+
+    vertices            (V, 3) float64, world metres
+    triangles           (T, 3) int64 indices into ``vertices``
+    triangle_object     (T,)   int32 index into ``object_names``
+    triangle_albedo     (T, 3) float32 diffuse reflectance (linear RGB, 0..1)
+    triangle_emission   (T, 3) float32 emitted radiance, W / (sr m^2) per channel
+    triangle_emission_two_sided (T,) bool: mesh emission is two-sided (Cycles), area lights are not
+    triangle_uv         (T, 3, 2) float32 UV of each corner (active render UV map), or None
+    object_names        list of O object names
+    object_carries_states (O,) bool: selected meshes carry LMDP states; others only occlude
+    object_has_uv       (O,) bool
+    world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays
+    warnings            messages for the user gathered during extraction
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    triangle_object: np.ndarray
+    triangle_albedo: np.ndarray
+    triangle_emission: np.ndarray
+    object_names: list
+    object_carries_states: np.ndarray
+    world_radiance: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    triangle_emission_two_sided: np.ndarray = None
+    triangle_uv: np.ndarray = None
+    object_has_uv: np.ndarray = None
+    warnings: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.triangles = np.ascontiguousarray(self.triangles, dtype=np.int64).reshape(-1, 3)
+        t = len(self.triangles)
+        self.triangle_object = np.ascontiguousarray(self.triangle_object, dtype=np.int32).reshape(t)
+        self.triangle_albedo = np.ascontiguousarray(self.triangle_albedo, dtype=np.float32).reshape(t, 3)
+        self.triangle_emission = np.ascontiguousarray(self.triangle_emission, dtype=np.float32).reshape(t, 3)
+        self.object_names = list(self.object_names)
+        self.object_carries_states = np.asarray(self.object_carries_states, dtype=bool).reshape(len(self.object_names))
+        self.world_radiance = np.asarray(self.world_radiance, dtype=np.float32).reshape(3)
+        if self.triangle_emission_two_sided is None:
+            self.triangle_emission_two_sided = np.ones(t, dtype=bool)
+        self.triangle_emission_two_sided = np.asarray(self.triangle_emission_two_sided, dtype=bool).reshape(t)
+        if self.triangle_uv is not None:
+            self.triangle_uv = np.ascontiguousarray(self.triangle_uv, dtype=np.float32).reshape(t, 3, 2)
+        if self.object_has_uv is None:
+            self.object_has_uv = np.zeros(len(self.object_names), dtype=bool)
+            if self.triangle_uv is not None:
+                self.object_has_uv[np.unique(self.triangle_object)] = True
+        self.object_has_uv = np.asarray(self.object_has_uv, dtype=bool).reshape(len(self.object_names))
+        if t and (self.triangles.min() < 0 or self.triangles.max() >= len(self.vertices)):
+            raise SceneError("Scene arrays are inconsistent: a triangle indexes a missing vertex")
+        if t and (self.triangle_object.min() < 0 or self.triangle_object.max() >= len(self.object_names)):
+            raise SceneError("Scene arrays are inconsistent: a triangle names a missing object")
+
+    # -- derived geometry ---------------------------------------------------------------------
+    @property
+    def n_triangles(self):
+        return len(self.triangles)
+
+    def corners(self):
+        """(T, 3, 3) float64 corner positions."""
+        return self.vertices[self.triangles]
+
+    def triangle_geometry(self):
+        """Face normals (T, 3) (unit, zero for degenerate triangles) and areas (T,) in m^2.
+
+        Non-finite triangles get area 0 and a zero normal.
+        """
+        c = self.corners()
+        cross = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+        norm = np.linalg.norm(cross, axis=1)
+        finite = np.isfinite(norm) & np.all(np.isfinite(c), axis=(1, 2))
+        area = np.where(finite, 0.5 * norm, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            normal = np.where((area > 0)[:, None], cross / np.where(norm > 0, norm, 1.0)[:, None], 0.0)
+        return normal, area
+
+    def valid_triangles(self):
+        """Boolean mask of triangles with finite corners and non-zero area."""
+        return self.triangle_geometry()[1] > 0
+
+    def bounding_diagonal(self):
+        """Length of the diagonal of the bounding box of all finite vertices (metres, >= 1e-6)."""
+        v = self.vertices[np.all(np.isfinite(self.vertices), axis=1)]
+        if len(v) == 0:
+            return 1.0
+        return max(float(np.linalg.norm(v.max(0) - v.min(0))), 1e-6)
+
+    def is_emissive(self):
+        """(T,) bool: triangles that emit light (any channel > 0)."""
+        return np.any(self.triangle_emission > 0, axis=1)
+
+    def emitter_groups(self):
+        """Group emissive triangles into emitters (one terminal state each).
+
+        Triangles of the same object with the same emitted radiance and sidedness form one
+        emitter (uniform emission). Returns ``triangle_emitter (T,) int32`` (-1 for non-emissive
+        triangles) and ``emitter_radiance (E, 3) float64``.
+        """
+        tri_emitter = np.full(self.n_triangles, -1, dtype=np.int32)
+        emissive = np.flatnonzero(self.is_emissive() & self.valid_triangles())
+        if len(emissive) == 0:
+            return tri_emitter, np.zeros((0, 3))
+        key = np.column_stack([
+            self.triangle_object[emissive].astype(np.float64),
+            self.triangle_emission[emissive].astype(np.float64),
+            self.triangle_emission_two_sided[emissive].astype(np.float64),
+        ])
+        uniq, inverse = np.unique(key, axis=0, return_inverse=True)
+        tri_emitter[emissive] = inverse.reshape(-1).astype(np.int32)
+        return tri_emitter, uniq[:, 1:4].copy()
+
+    def emitter_names(self):
+        """Human-readable name of each emitter group (its object's name)."""
+        tri_emitter, radiance = self.emitter_groups()
+        names = []
+        for e in range(len(radiance)):
+            obj = self.triangle_object[np.flatnonzero(tri_emitter == e)[0]]
+            names.append(self.object_names[obj])
+        return names
+
+    def state_triangles(self):
+        """(T,) bool: triangles that carry states: on selected objects, valid, not emissive."""
+        return (self.object_carries_states[self.triangle_object]
+                & self.valid_triangles() & ~self.is_emissive())
+
+    def total_emitted_power_density(self):
+        """Sum over emitters of their exitance π·L (luminance, W/m^2): the thesis's default λ."""
+        _, radiance = self.emitter_groups()
+        total = float(np.pi * luminance(radiance).sum()) if len(radiance) else 0.0
+        if np.any(self.world_radiance > 0):
+            total += float(np.pi * luminance(self.world_radiance))
+        return total
+
+    def has_light(self):
+        """True when some emitter or a non-black world can light the scene."""
+        return bool(np.any(self.is_emissive() & self.valid_triangles()) or np.any(self.world_radiance > 0))
+
+    def check_for_lmdp(self):
+        """Raise :class:`SceneError` (user message) when no LMDP can be built from this scene."""
+        if not np.any(self.object_carries_states):
+            raise SceneError("Select at least one mesh object: the selected meshes carry the LMDP states")
+        if not np.any(self.state_triangles()):
+            names = ", ".join(n for n, s in zip(self.object_names, self.object_carries_states) if s)
+            raise SceneError(
+                f"The selected meshes ({names}) have no surface that can carry states: "
+                "they are empty, degenerate or entirely emissive")
+        if not self.has_light():
+            raise SceneError(
+                "The scene has no light the LMDP can use: add an emissive material (Emission shader "
+                "or Principled emission), an area light, or a non-black world colour")
