@@ -1,0 +1,241 @@
+"""Scene settings: ``scene.lmdp``, one property per field of :class:`lmdp_addon.settings.Settings`.
+
+Property names are public API (scripts and the README use them): add, never rename. Operators
+read them with :func:`settings_from_scene`, which returns the engine's plain ``Settings``.
+"""
+import bpy
+from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, SOLVERS, Settings
+
+_DEFAULTS = Settings()
+
+COST_MODE_ITEMS = (
+    ("THESIS", "Thesis",
+     "The thesis's LMDP (section 3.1): rows of P normalised to probabilities with an epsilon "
+     "self-loop, state cost g = 1, Q = exp(-lambda g), emitters are goal states with z = 1"),
+    ("PHYSICAL", "Physical",
+     "Light transport: P = cosine-weighted form factors, Q = albedo, emitters fixed at their "
+     "radiance, so z is the outgoing radiance (W/sr/m^2) and u* the zero-variance guide"),
+)
+SOLVER_ITEMS = (
+    ("POWER", "Power Method",
+     "The thesis's z-iteration z <- Q P z with the emitters fixed (thesis eq. 2.22, section 3.1.4)"),
+    ("DIRECT", "Direct",
+     "Sparse LU factorisation of (I - Q P) z = Q P z_terminal: exact, memory grows quickly"),
+    ("ITERATIVE", "Iterative",
+     "Krylov solver of (I - Q P) z = Q P z_terminal, falling back to the power method"),
+)
+BAKE_MODE_ITEMS = (
+    ("UNGUIDED", "Unguided",
+     "Path tracing with cosine-weighted directions: the baseline estimator"),
+    ("GUIDED", "Guided",
+     "Path tracing with directions drawn from a mixture of the optimal policy u* and cosine "
+     "sampling: unbiased, lower variance where light arrives from few directions"),
+    ("FINAL_GATHER", "Final Gather",
+     "One guided bounce, then the PHYSICAL-mode solution at the hit: very fast, biased by the "
+     "discretisation"),
+)
+DISPLAY_QUANTITY_ITEMS = (
+    ("Z", "Desirability z",
+     "Desirability z (in PHYSICAL mode the outgoing radiance, W/sr/m^2), on a log colour scale"),
+    ("COST_TO_GO", "Cost-to-go J",
+     "Optimal cost-to-go J = -(log z) / lambda: expected cost of reaching a light from the state"),
+    ("RESIDUAL", "Residual",
+     "Per-state residual |z - Q P z| of the solve: where the solution is least converged"),
+)
+POLICY_SUBSET_ITEMS = (
+    ("ACTIVE_OBJECT", "Active Object", "Arrows for the states on the active object"),
+    ("MOST_INFORMATIVE", "Most Informative",
+     "Arrows for the states whose optimal policy differs most from the passive dynamics"),
+)
+
+for _items, _identifiers in ((COST_MODE_ITEMS, COST_MODES), (SOLVER_ITEMS, SOLVERS),
+                             (BAKE_MODE_ITEMS, BAKE_MODES)):
+    assert tuple(item[0] for item in _items) == tuple(_identifiers), "enum items out of sync with the engine"
+
+
+class LMDPSceneSettings(bpy.types.PropertyGroup):
+    """Settings of every LMDP stage for this scene (``scene.lmdp``)."""
+
+    # -- State space (thesis 3.1.1) ---------------------------------------------------------------
+    point_count: IntProperty(
+        name="Points",
+        description="Number of surface points sampled over the selected meshes, proportional to "
+                    "world-space area (count). Each point carries one state per hemisphere stratum",
+        default=_DEFAULTS.point_count, min=1, max=10_000_000, soft_min=16, soft_max=200_000,
+    )
+    strata_u: IntProperty(
+        name="Strata U",
+        description="Hemisphere strata along u of the Shirley-Chiu square (count); all strata "
+                    "have the same solid angle, 2 pi / (U x V) sr",
+        default=_DEFAULTS.strata_u, min=1, max=64, soft_max=16,
+    )
+    strata_v: IntProperty(
+        name="Strata V",
+        description="Hemisphere strata along v of the Shirley-Chiu square (count); all strata "
+                    "have the same solid angle, 2 pi / (U x V) sr",
+        default=_DEFAULTS.strata_v, min=1, max=64, soft_max=16,
+    )
+    # -- Passive dynamics (thesis 3.1.2) ------------------------------------------------------------
+    rays_per_stratum: IntProperty(
+        name="Rays per Stratum",
+        description="Jittered rays cast through each stratum of each point to estimate the "
+                    "passive dynamics P (rays). More rays: less noise in P, longer build",
+        default=_DEFAULTS.rays_per_stratum, min=1, max=4096, soft_max=64,
+    )
+    epsilon: FloatProperty(
+        name="Self-loop Epsilon",
+        description="Self-loop probability added to every row of P in THESIS mode (thesis eq. "
+                    "3.1, probability, unitless)",
+        default=_DEFAULTS.epsilon, min=0.0, max=1.0, soft_max=0.01, precision=6, step=0.001,
+    )
+    # -- State costs (thesis 3.1.3) -----------------------------------------------------------------
+    cost_mode: EnumProperty(
+        name="Cost Mode",
+        description="How the state costs Q and the terminal desirability are defined",
+        items=COST_MODE_ITEMS, default=_DEFAULTS.cost_mode,
+    )
+    lambda_scale: FloatProperty(
+        name="Lambda Scale",
+        description="THESIS mode: lambda = (sum over lights of their exitance, W/m^2) x this "
+                    "factor (unitless). Small: slow convergence, u* close to P; large: sharp u*",
+        default=_DEFAULTS.lambda_scale, min=1e-9, max=1e9, soft_min=1e-4, soft_max=100.0,
+        precision=4,
+    )
+    # -- Solver (thesis 2.2.2, 3.1.4) ---------------------------------------------------------------
+    solver: EnumProperty(
+        name="Solver",
+        description="Method that solves for the desirability z",
+        items=SOLVER_ITEMS, default=_DEFAULTS.solver,
+    )
+    tolerance: FloatProperty(
+        name="Tolerance",
+        description="Relative change (power method) or relative residual (iterative) at which "
+                    "the solver stops (unitless, e.g. 1e-8)",
+        default=_DEFAULTS.tolerance, min=1e-15, max=0.1, soft_min=1e-12, soft_max=1e-2,
+        precision=6, step=1e-4,
+    )
+    max_iterations: IntProperty(
+        name="Max Iterations",
+        description="Iteration cap of the POWER and ITERATIVE solvers (iterations)",
+        default=_DEFAULTS.max_iterations, min=1, max=10_000_000, soft_max=100_000,
+    )
+    # -- Bake (guided path tracing) -----------------------------------------------------------------
+    bake_mode: EnumProperty(
+        name="Bake Mode",
+        description="Estimator used to bake indirect light into image textures",
+        items=BAKE_MODE_ITEMS, default=_DEFAULTS.bake_mode,
+    )
+    bake_resolution: IntProperty(
+        name="Resolution",
+        description="Width and height of each baked lightmap (pixels)",
+        default=_DEFAULTS.bake_resolution, min=1, max=16384, soft_min=16, soft_max=4096,
+        subtype='PIXEL',
+    )
+    bake_samples: IntProperty(
+        name="Samples",
+        description="Paths traced per texel (paths)",
+        default=_DEFAULTS.bake_samples, min=1, max=1_000_000, soft_max=4096,
+    )
+    bake_margin: IntProperty(
+        name="Margin",
+        description="Dilation around UV islands, like Cycles' bake margin (pixels)",
+        default=_DEFAULTS.bake_margin, min=0, max=512, soft_max=64, subtype='PIXEL',
+    )
+    guide_fraction: FloatProperty(
+        name="Guide Fraction",
+        description="GUIDED mode: probability of drawing a direction from the optimal policy u* "
+                    "instead of cosine sampling (probability, 0..1)",
+        default=_DEFAULTS.guide_fraction, min=0.0, max=1.0, subtype='FACTOR',
+    )
+    max_bounces: IntProperty(
+        name="Max Bounces",
+        description="Path length cap of the tracer; Russian roulette starts after 3 (bounces)",
+        default=_DEFAULTS.max_bounces, min=1, max=1024, soft_max=64,
+    )
+    # -- General ------------------------------------------------------------------------------------
+    seed: IntProperty(
+        name="Seed",
+        description="Random seed: every stage is deterministic for a given seed",
+        default=_DEFAULTS.seed, min=0,
+    )
+    output_dir: StringProperty(
+        name="Output Folder",
+        description="Folder where baked lightmaps (OpenEXR), statistics and exports are written; "
+                    "empty: nothing is written to disk",
+        default=_DEFAULTS.output_dir, subtype='DIR_PATH',
+    )
+    memory_budget_gb: FloatProperty(
+        name="Memory Budget",
+        description="Refuse to build problems whose estimated memory exceeds this (GiB)",
+        default=_DEFAULTS.memory_budget_gb, min=0.01, max=4096.0, soft_max=64.0, precision=2,
+    )
+
+    # -- Display (visualisation of z / J / u* in the viewport) --------------------------------------
+    display_quantity: EnumProperty(
+        name="Show",
+        description="Quantity written as vertex colours by Show Desirability",
+        items=DISPLAY_QUANTITY_ITEMS, default='Z',
+    )
+    policy_subset: EnumProperty(
+        name="Policy States",
+        description="Which states get optimal-policy arrows",
+        items=POLICY_SUBSET_ITEMS, default='ACTIVE_OBJECT',
+    )
+    policy_max_points: IntProperty(
+        name="Max Points",
+        description="Largest number of surface points that get policy arrows (points)",
+        default=200, min=1, max=100_000, soft_max=5000,
+    )
+    policy_arrow_scale: FloatProperty(
+        name="Arrow Scale",
+        description="Length of a policy arrow of probability 1 (metres)",
+        default=0.1, min=0.0, max=1000.0, soft_min=0.001, soft_max=10.0, subtype='DISTANCE',
+        unit='LENGTH',
+    )
+
+    # -- Internal -----------------------------------------------------------------------------------
+    session_id: StringProperty(
+        name="Session ID",
+        description="Internal: identifies this scene's in-memory LMDP results (not user data)",
+        default="", options={'HIDDEN'},
+    )
+
+    @classmethod
+    def register(cls):
+        bpy.types.Scene.lmdp = PointerProperty(
+            type=cls, name="LMDP Light Transport", description="LMDP Light Transport settings")
+
+    @classmethod
+    def unregister(cls):
+        del bpy.types.Scene.lmdp
+
+
+#: Settings fields stored as 32-bit floats by Blender: read back with 7 significant digits.
+_FLOAT_FIELDS = frozenset(name for name, value in Settings().as_dict().items() if isinstance(value, float))
+
+
+def settings_from_scene(scene):
+    """The engine's :class:`Settings` for ``scene`` (a copy of ``scene.lmdp``).
+
+    Blender stores float properties in single precision: they are rounded to 7 significant
+    digits so that a tolerance typed as 1e-8 reaches the engine as 1e-8, not 9.99999994e-09.
+    ``output_dir`` is made absolute (Blender's ``//`` prefix means "next to the .blend file").
+    """
+    props = scene.lmdp
+    values = {}
+    for name in Settings().as_dict():
+        if not hasattr(props, name):
+            continue
+        value = getattr(props, name)
+        if name in _FLOAT_FIELDS:
+            value = float(f"{value:.7g}")
+        elif name == "output_dir" and value:
+            value = bpy.path.abspath(value)  # '//bakes/' is relative to the .blend file
+        values[name] = value
+    return Settings.from_mapping(values)
+
+
+classes = (LMDPSceneSettings,)
+register, unregister = bpy.utils.register_classes_factory(classes)
