@@ -1,0 +1,416 @@
+"""Passive dynamics (thesis 3.1.2, eq. 3.1) estimated by casting rays through every stratum.
+
+For point x and stratum k, ``rays_per_stratum`` jittered rays leave x through stratum k. Each
+ray carries ``w_k / R``, where ``w_k = ∫_k cos θ dω / π`` is the exact Lambertian (BRDF·cos)
+mass of the stratum, and lands in one next state:
+
+* the nearest state point on the hit object whose normal faces the side that was hit
+  (the next state is that point with the reversed ray direction as outgoing direction; for the
+  Lambertian reduction only the point matters, see ``design.md``),
+* an emitter terminal (uniform emission: one terminal per emitter group),
+* the world terminal (escaping ray, world not black),
+* the void terminal (z = 0): geometry that carries no states, back faces of one-sided
+  emitters, hits with no compatible state, and escapes into a black world.
+
+Because the stratum masses sum to one and every ray lands somewhere, each row of P sums to one.
+No Python loop runs over rays or states: rays are generated, traced and binned in large batches.
+"""
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from .errors import BudgetError
+from .hemisphere import square_to_hemisphere, stratum_square_samples
+from .raycast import RayCaster, offset_origins
+from .states import GOLDEN
+
+#: Column roles after the point columns.
+WORLD = "world"
+VOID = "void"
+
+#: Target rays per batch of the build loop.
+RAYS_PER_BATCH = 1 << 19
+#: Batches processed concurrently.
+BUILD_THREADS = 3
+
+
+@dataclass
+class PassiveDynamics:
+    """Sparse passive dynamics p(x'|x) of the point-level states plus the terminal states.
+
+    stratum_transitions  CSR (m*S, n) float32: row ``i*S + k`` holds the mass that rays leaving
+                         point i through stratum k deliver to each next state (sums to w_k)
+    P                    CSR (m, n) float32: point-level passive dynamics, rows sum to 1
+    n_points, n_strata   m, S
+    emitter_radiance     (E, 3) radiance of each emitter terminal (W / sr m^2)
+    emitter_names        E names (the emitting objects)
+    world_radiance       (3,) radiance of the world terminal
+    Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E`` world, ``m+E+1`` void.
+    counts               rays per landing category (points, emitters, world, void reasons)
+    """
+
+    stratum_transitions: sp.csr_matrix
+    P: sp.csr_matrix
+    n_points: int
+    n_strata: int
+    emitter_radiance: np.ndarray
+    emitter_names: list
+    world_radiance: np.ndarray
+    rays_per_stratum: int
+    counts: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+
+    @property
+    def n_emitters(self):
+        return len(self.emitter_radiance)
+
+    @property
+    def n_terminals(self):
+        return self.n_emitters + 2
+
+    @property
+    def n_columns(self):
+        return self.n_points + self.n_terminals
+
+    @property
+    def world_column(self):
+        return self.n_points + self.n_emitters
+
+    @property
+    def void_column(self):
+        return self.n_points + self.n_emitters + 1
+
+    @property
+    def rays(self):
+        return self.n_points * self.n_strata * self.rays_per_stratum
+
+    def terminal_labels(self):
+        return [f"emitter:{n}" for n in self.emitter_names] + [WORLD, VOID]
+
+    def memory_bytes(self):
+        return sum(m.data.nbytes + m.indices.nbytes + m.indptr.nbytes
+                   for m in (self.stratum_transitions, self.P))
+
+    def summary(self):
+        c = self.counts
+        total = max(sum(c.get(k, 0) for k in ("points", "emitters", "world", "void")), 1)
+        return (f"{self.n_points} x {self.n_columns} passive dynamics, nnz {self.P.nnz} "
+                f"({self.stratum_transitions.nnz} per stratum), {self.rays} rays: "
+                f"{100 * c.get('points', 0) / total:.1f}% to states, "
+                f"{100 * c.get('emitters', 0) / total:.1f}% to emitters, "
+                f"{100 * c.get('world', 0) / total:.1f}% to the world, "
+                f"{100 * c.get('void', 0) / total:.1f}% to the void")
+
+
+def estimate_build_bytes(n_points, n_strata, rays_per_stratum):
+    """Upper estimate of the peak memory of :func:`build_passive_dynamics` (bytes).
+
+    Every ray can become a non-zero of the stratum-resolved matrix and of P (8 bytes each as
+    float32 value + int32 index, twice during assembly), plus one batch of ray arrays.
+    """
+    rays = int(n_points) * int(n_strata) * int(rays_per_stratum)
+    per_nonzero = 8 * 2 * 2
+    batch = min(rays, RAYS_PER_BATCH) * 200
+    return rays * per_nonzero + (n_points * n_strata + n_points) * 8 + batch
+
+
+def check_budget(n_points, n_strata, rays_per_stratum, budget_gb):
+    """Raise :class:`BudgetError` when the estimated build memory exceeds ``budget_gb``."""
+    need = estimate_build_bytes(n_points, n_strata, rays_per_stratum)
+    if budget_gb is not None and need > budget_gb * 1024 ** 3:
+        raise BudgetError(
+            f"Building the dynamics for {n_points} points x {n_strata} strata x "
+            f"{rays_per_stratum} rays would need about {need / 1024 ** 3:.1f} GiB, above the "
+            f"memory budget of {budget_gb:g} GiB: lower Point Count, the strata or Rays per "
+            "Stratum, or raise the Memory Budget setting")
+    return need
+
+
+class StateLocator:
+    """Maps surface hits to the nearest state point on the same object and side (cKDTree).
+
+    Distances are measured in 6D, ``(position, α·normal)`` with ``α`` the object's mean point
+    spacing, so a hit prefers points on its own side and facet (thin walls, box edges); a match
+    whose normal faces away from the hit side is rejected (-> void).
+
+    Querying a tree for every ray would cost more than tracing it, so the nearest point is
+    tabulated per triangle on a grid over its barycentric square whose cells are at most
+    1/``CELLS_PER_SPACING`` of the point spacing along each edge: a front-face hit takes the
+    nearest point of its cell's centre. This resolves the nearest point to a quarter of the
+    spacing (a hit may go to a neighbour that is at most one cell diagonal farther than the
+    nearest; see ``tests/engine/test_dynamics.py`` for the measured rate). ``exact=True``
+    queries the trees for every hit instead. Back-face hits always query the trees.
+    """
+
+    CELLS_PER_SPACING = 4
+    MAX_CELLS = 4096
+
+    def __init__(self, scene, states, exact=False):
+        self.trees = {}
+        self.alpha = np.zeros(len(scene.object_names))
+        self.index = {}
+        for o in np.unique(states.point_object):  # loop over objects, not rays
+            ids = np.flatnonzero(states.point_object == o)
+            area = float(states.point_area[ids].sum())
+            alpha = np.sqrt(area / len(ids)) if area > 0 else 1.0
+            feats = np.hstack([states.points[ids], alpha * states.normals[ids]])
+            self.trees[int(o)] = cKDTree(feats)
+            self.alpha[o] = alpha
+            self.index[int(o)] = ids
+        self.normals = states.normals
+        self.scene = scene
+        self.exact = bool(exact)
+        self.face_normals = scene.triangle_geometry()[0]
+        if not self.exact:
+            self._build_grids(scene)
+
+    def _build_grids(self, scene):
+        T = scene.n_triangles
+        has_tree = np.zeros(len(scene.object_names), dtype=bool)
+        has_tree[list(self.trees)] = True
+        tri_ok = scene.state_triangles() & has_tree[scene.triangle_object]
+        spacing = np.maximum(self.alpha[scene.triangle_object], 1e-12)
+        c = scene.corners()
+        e1 = c[:, 1] - c[:, 0]
+        e2 = c[:, 2] - c[:, 0]
+        cells = self.CELLS_PER_SPACING / spacing
+        gu = np.where(tri_ok, np.clip(np.ceil(cells * np.linalg.norm(e1, axis=1)), 1, self.MAX_CELLS), 0)
+        gv = np.where(tri_ok, np.clip(np.ceil(cells * np.linalg.norm(e2, axis=1)), 1, self.MAX_CELLS), 0)
+        self.gu = gu.astype(np.int64)
+        self.gv = gv.astype(np.int64)
+        self.grid_offset = np.concatenate([[0], np.cumsum(self.gu * self.gv)])[:-1]
+        self.grid_point = np.full(int((self.gu * self.gv).sum()), -1, dtype=np.int32)
+        if len(self.grid_point) == 0:
+            return
+        # Enumerate only the cells that meet the triangle: in row i (u in [i, i+1)/gu) the
+        # cells j < gv (1 - i/gu) (vectorised over all rows of all triangles).
+        row_tri = np.repeat(np.arange(T), self.gu)
+        row_i = np.arange(len(row_tri)) - np.repeat(np.cumsum(self.gu) - self.gu, self.gu)
+        row_len = np.ceil(self.gv[row_tri] * (1.0 - row_i / self.gu[row_tri]) - 1e-9).astype(np.int64)
+        row_len = np.clip(row_len, 1, self.gv[row_tri])
+        t = np.repeat(row_tri, row_len)
+        i = np.repeat(row_i, row_len)
+        j = np.arange(len(t)) - np.repeat(np.cumsum(row_len) - row_len, row_len)
+        u = (i + 0.5) / self.gu[t]
+        v = (j + 0.5) / self.gv[t]
+        pos = c[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
+        found = self.locate(pos, self.face_normals[t], scene.triangle_object[t])
+        self.grid_point[self.grid_offset[t] + i * self.gv[t] + j] = found
+
+    def locate_front(self, tri, u, v, positions=None, workers=-1):
+        """Nearest compatible point for front-face hits on ``tri`` with barycentrics ``(u, v)``."""
+        if self.exact:
+            return self.locate(positions, self.face_normals[tri], self.scene.triangle_object[tri],
+                               workers=workers)
+        gu = self.gu[tri]
+        gv = self.gv[tri]
+        i = np.minimum((u * gu).astype(np.int64), gu - 1)
+        j = np.minimum((v * gv).astype(np.int64), gv - 1)
+        return self.grid_point[self.grid_offset[tri] + i * gv + j].astype(np.int64)
+
+    def locate(self, positions, side_normals, objects, workers=-1):
+        """Exact nearest point for each hit (tree query), -1 where the object has no states or
+        the nearest point faces away from the hit side."""
+        out = np.full(len(positions), -1, dtype=np.int64)
+        for o, tree in self.trees.items():
+            sel = np.flatnonzero(objects == o)
+            if len(sel) == 0:
+                continue
+            q = np.hstack([positions[sel], self.alpha[o] * side_normals[sel]])
+            _, nearest = tree.query(q, k=1, workers=workers)
+            ids = self.index[o][nearest]
+            facing = np.einsum("ij,ij->i", self.normals[ids], side_normals[sel]) > 0.0
+            out[sel] = np.where(facing, ids, -1)
+        return out
+
+
+class DirectionPatterns:
+    """A pool of jittered local ray patterns, one per point modulo the pool size.
+
+    Each pattern holds R directions in every stratum, a randomly shifted rank-1 lattice
+    ``((r + ξ)/R, frac(r/φ + ξ'))`` mapped through the stratum, so rays spread over the stratum.
+    Sharing patterns between distant points keeps the per-point estimate stratified and unbiased
+    while the warp runs once per pattern instead of once per ray.
+    """
+
+    def __init__(self, strata_u, strata_v, rays_per_stratum, rng, pool=64):
+        S, R = strata_u * strata_v, int(rays_per_stratum)
+        stratum = np.tile(np.repeat(np.arange(S), R), pool)
+        r = np.tile(np.arange(R), pool * S)
+        shift = rng.random((pool * S, 2)).repeat(R, axis=0)
+        u, v = stratum_square_samples(stratum, (r + shift[:, 0]) / R,
+                                      np.mod(r * GOLDEN + shift[:, 1], 1.0), strata_u, strata_v)
+        self.local = square_to_hemisphere(u, v).reshape(pool, S * R, 3).astype(np.float32)
+        self.pool = pool
+        self.ray_stratum = np.repeat(np.arange(S), R)
+
+    def directions(self, frames, point_ids):
+        """World directions (len(point_ids) * S * R, 3) for the points with these frames."""
+        local = self.local[point_ids % self.pool]          # (n, S*R, 3)
+        return np.matmul(local, frames).reshape(-1, 3)      # rows of frames are t, b, n
+
+
+class HitClassifier:
+    """Per-triangle lookup tables that turn closest hits into next-state columns.
+
+    Columns (see :class:`PassiveDynamics`): points, emitter terminals, world, void.
+    """
+
+    def __init__(self, scene, locator, n_points):
+        self.scene = scene
+        self.locator = locator
+        tri_emitter, emitter_radiance = scene.emitter_groups()
+        E = len(emitter_radiance)
+        self.n_points = n_points
+        self.world_col = n_points + E
+        self.void_col = n_points + E + 1
+        self.world_lit = bool(np.any(scene.world_radiance > 0))
+        T = scene.n_triangles
+        carries = scene.object_carries_states[scene.triangle_object] & (tri_emitter < 0)
+        # Column of a front hit for every triangle (-1: carrier, look the point up), plus a
+        # sentinel row T for misses.
+        front = np.where(tri_emitter >= 0, n_points + tri_emitter, np.where(carries, -1, self.void_col))
+        back = np.where((tri_emitter >= 0) & scene.triangle_emission_two_sided, n_points + tri_emitter,
+                        np.where(carries, -1, self.void_col))
+        miss = self.world_col if self.world_lit else self.void_col
+        self.front_col = np.append(front, miss).astype(np.int64)
+        self.back_col = np.append(back, miss).astype(np.int64)
+        self.normals = np.vstack([locator.face_normals, np.zeros((1, 3))]).astype(np.float32)
+        self.is_emitter = np.append(tri_emitter >= 0, False)
+        self.carries = np.append(carries, False)
+
+    def classify(self, origins, directions, tri, dist, bary_u, bary_v, workers=-1):
+        """Next-state column of every ray and a count per landing category."""
+        T = self.scene.n_triangles
+        t = np.where(tri >= 0, tri, T)
+        front = np.einsum("ij,ij->i", self.normals[t], directions) < 0.0
+        col = np.where(front, self.front_col[t], self.back_col[t])
+        n_miss = int(np.count_nonzero(tri < 0))
+        counts = {"world": n_miss if self.world_lit else 0,
+                  "void_escape": 0 if self.world_lit else n_miss}
+        emitter = self.is_emitter[t]
+        counts["emitters"] = int(np.count_nonzero(emitter & (col != self.void_col)))
+        counts["void_emitter_back"] = int(np.count_nonzero(emitter & (col == self.void_col)))
+        lookup = np.flatnonzero(col < 0)
+        on_front = front[lookup]
+        fl = lookup[on_front]
+        pos = None
+        if self.locator.exact:
+            pos = origins[fl] + directions[fl] * dist[fl, None]
+        col[fl] = self.locator.locate_front(t[fl], bary_u[fl], bary_v[fl], pos, workers=workers)
+        bl = lookup[~on_front]
+        if len(bl):
+            pos = origins[bl] + directions[bl] * dist[bl, None]
+            col[bl] = self.locator.locate(pos, -self.locator.face_normals[t[bl]],
+                                          self.scene.triangle_object[t[bl]], workers=workers)
+        counts["back_faces"] = len(bl)
+        unresolved = col < 0
+        counts["void_no_state"] = int(np.count_nonzero(unresolved))
+        col[unresolved] = self.void_col
+        counts["points"] = int(np.count_nonzero(col < self.n_points))
+        counts["void_unmodelled"] = int(np.count_nonzero(~emitter & ~self.carries[t] & (tri >= 0)))
+        counts["void"] = int(np.count_nonzero(col == self.void_col))
+        return col, counts
+
+
+def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=None,
+                           memory_budget_gb=None, caster=None, exact_nearest=False):
+    """Estimate the passive dynamics of every state by ray casting (thesis 3.1.2, eq. 3.1).
+
+    Returns a :class:`PassiveDynamics` with rows summing to one (Lambertian BRDF·cos mass).
+    """
+    t0 = time.perf_counter()
+    R = int(rays_per_stratum)
+    if R < 1:
+        raise BudgetError(f"Rays per Stratum must be at least 1 (got {R})")
+    m, S = states.n_points, states.n_strata
+    check_budget(m, S, R, memory_budget_gb)
+    caster = caster or RayCaster(scene)
+    tri_emitter, emitter_radiance = scene.emitter_groups()
+    E = len(emitter_radiance)
+    n_cols = m + E + 2
+    locator = StateLocator(scene, states, exact=exact_nearest)
+    classifier = HitClassifier(scene, locator, m)
+    rng = np.random.default_rng([int(seed), 0x1DA7])
+    patterns = DirectionPatterns(states.strata_u, states.strata_v, R, rng)
+    weight_per_ray = (states.stratum_weight / R).astype(np.float32)
+    # Every ray leaves through the upper hemisphere of its point: offset along the normal.
+    lifted = (states.points + caster.offset() * states.normals).astype(np.float32)
+    frames = states.frames.astype(np.float32)
+    t_setup = time.perf_counter() - t0
+
+    points_per_batch = max(1, RAYS_PER_BATCH // (S * R))
+    weights_per_row = np.repeat(weight_per_ray, R)
+
+    def trace_batch(start):
+        """Rays of a batch of points -> CSR block of the stratum-resolved dynamics."""
+        ids = np.arange(start, min(start + points_per_batch, m))
+        dirs = patterns.directions(frames[ids], ids)
+        origins = np.repeat(lifted[ids], S * R, axis=0)
+        ta = time.perf_counter()
+        tri, dist, bu, bv = caster.intersect(origins, dirs, barycentrics=True)
+        tb = time.perf_counter()
+        col, c = classifier.classify(origins, dirs, tri, dist, bu, bv, workers=1)
+        # Rays come ordered by (point, stratum): each CSR row has exactly R entries.
+        n_rows = len(ids) * S
+        block = sp.csr_matrix((np.tile(weights_per_row, len(ids)), col.astype(np.int32),
+                               np.arange(0, n_rows * R + 1, R, dtype=np.int64)), shape=(n_rows, n_cols))
+        block.sum_duplicates()
+        return block, c, tb - ta, time.perf_counter() - tb
+
+    # Batches run on a small thread pool: embree and numpy release the GIL, so tracing one
+    # batch overlaps with binning another.
+    starts = list(range(0, m, points_per_batch))
+    blocks = [None] * len(starts)
+    counts = {}
+    t_trace = t_bin = 0.0
+    done = 0
+    with ThreadPoolExecutor(max_workers=BUILD_THREADS) as pool:
+        futures = {pool.submit(trace_batch, st): b for b, st in enumerate(starts)}
+        try:
+            for future in as_completed(futures):
+                block, c, tt, tb = future.result()
+                blocks[futures[future]] = block
+                for key, value in c.items():
+                    counts[key] = counts.get(key, 0) + value
+                t_trace += tt
+                t_bin += tb
+                done += block.shape[0] // S
+                if progress is not None:
+                    progress.update(done / m, f"{done}/{m} points traced")
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+    stratum_transitions = _compact(sp.vstack(blocks, format="csr") if len(blocks) > 1 else blocks[0])
+    aggregate = sp.csr_matrix((np.ones(m * S, dtype=np.float32), np.arange(m * S),
+                               np.arange(0, m * S + 1, S)), shape=(m, m * S))
+    P = _compact(aggregate @ stratum_transitions)
+    counts["rays"] = m * S * R
+    return PassiveDynamics(
+        stratum_transitions=stratum_transitions,
+        P=P,
+        n_points=m,
+        n_strata=S,
+        emitter_radiance=np.asarray(emitter_radiance, dtype=np.float64),
+        emitter_names=scene.emitter_names(),
+        world_radiance=np.asarray(scene.world_radiance, dtype=np.float64),
+        rays_per_stratum=R,
+        counts=counts,
+        seconds={"setup": t_setup, "trace": t_trace, "bin": t_bin, "total": time.perf_counter() - t0},
+    )
+
+
+def _compact(matrix):
+    """CSR with float32 data and int32 indices (the storage format of the dynamics)."""
+    matrix = sp.csr_matrix(matrix)
+    matrix.sum_duplicates()
+    matrix.eliminate_zeros()
+    out = sp.csr_matrix((matrix.data.astype(np.float32), matrix.indices.astype(np.int32),
+                         matrix.indptr.astype(np.int32 if matrix.nnz < 2 ** 31 else np.int64)),
+                        shape=matrix.shape)
+    return out
