@@ -1,0 +1,328 @@
+"""Texels of a lightmap: which surface point each pixel of a baked image stands for, like Cycles.
+
+Blender's bake (``source/blender/render/intern/bake.cc`` + ``zbuf.cc``, verified against Cycles'
+POSITION / NORMAL bakes of Blender 5.0, see ``docs/cycles_conventions.md``) maps an image of
+R x R pixels onto a mesh as follows, and this module reproduces it exactly:
+
+* Pixel (column i, row j) (row 0 = bottom row, as in ``Image.pixels``) samples the UV point
+  ``((i + 0.5 + 0.001) / R, (j + 0.5 + 0.002) / R)``: the pixel centre nudged by the constant
+  offset Blender adds against pixel-aligned UVs (``ZSPAN_X/Y_EPSILON``).
+* A pixel is covered by a triangle when that point lies inside the triangle's UV image: rows
+  ``ceil(y_min) <= j <= floor(y_max)``, and along a row ``x_left < i <= x_right`` (left edges
+  exclusive, right edges inclusive) in the shifted pixel space ``uv * R - (0.501, 0.502)``.
+  Triangles are rasterised in order, so where UV triangles overlap the last one wins.
+* Cycles' sample 0 shades exactly that point; samples 1, 2, ... are jittered uniformly over a box
+  of **half** a pixel around it (``bake_differentials`` stores half the barycentric derivatives).
+  A jitter that leaves the triangle is redrawn, up to 10 times, and then falls back to the texel
+  point (``bake_jitter_barycentric`` in ``init_from_bake.h``): samples never cross to the
+  neighbouring triangle. :func:`sample_footprint` draws the same distribution.
+* ``margin`` pixels around the covered ones are filled by :func:`dilate` with ``margin_type =
+  'EXTEND'`` semantics (``IMB_filter_extend``). Blender's default ``'ADJACENT_FACES'`` margin
+  (which copies pixels across UV seams) is not reproduced: bake with ``margin_type='EXTEND'``
+  when comparing images including their margins.
+
+Everything is vectorised over texels; triangles are expanded over their pixel bounding boxes in
+chunks, so 200k small triangles cost a few numpy passes.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Offset Blender subtracts from ``uv * R`` before rasterising (zbuf.cc: 0.5 + epsilon).
+PIXEL_OFFSET = (0.5 + 0.001, 0.5 + 0.002)
+#: Half width of Cycles' jitter box around the texel point, in pixels.
+FOOTPRINT_HALF_WIDTH = 0.25
+
+
+@dataclass
+class TexelSet:
+    """The covered texels of one R x R image.
+
+    resolution    R (width = height)
+    row, col      (n,) int32 pixel indices; row 0 is the bottom row (Blender's ``Image.pixels``)
+    triangle      (n,) int64 index of the triangle each texel lies on
+    barycentric   (n, 3) float64 weights of the triangle's corners 0, 1, 2 (sum to 1)
+    position      (n, 3) float64 world position of the texel point (metres)
+    normal        (n, 3) float64 unit normal there (interpolated when corner normals were given)
+    pixel_barycentric_derivatives  (n, 2, 2): d(b1, b2)/d(x, y) of Cycles' bake differentials
+        (half the true derivative, see the module doc); rows: b1, b2; columns: x, y
+    triangle_corners, triangle_normals: the arrays the texels were computed from (not copied)
+    """
+
+    resolution: int
+    row: np.ndarray
+    col: np.ndarray
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    pixel_barycentric_derivatives: np.ndarray
+    triangle_corners: np.ndarray
+    triangle_normals: np.ndarray
+
+    def __len__(self):
+        return len(self.row)
+
+    @property
+    def flat_index(self):
+        """(n,) index into a flattened (R*R) image, row-major from the bottom row."""
+        return self.row.astype(np.int64) * self.resolution + self.col
+
+    def covered_mask(self):
+        """(R, R) bool image of the covered texels."""
+        mask = np.zeros(self.resolution * self.resolution, dtype=bool)
+        mask[self.flat_index] = True
+        return mask.reshape(self.resolution, self.resolution)
+
+    def to_image(self, values, fill=0.0):
+        """Scatter per-texel ``values (n,) or (n, C)`` into an (R, R[, C]) float32 image."""
+        values = np.asarray(values)
+        shape = (self.resolution * self.resolution,) + values.shape[1:]
+        image = np.full(shape, fill, dtype=np.float32)
+        image[self.flat_index] = values
+        return image.reshape((self.resolution, self.resolution) + values.shape[1:])
+
+
+@dataclass
+class FootprintSamples:
+    """Points inside each texel's footprint: barycentric, position, normal (n_texels, k, 3)."""
+
+    barycentric: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+
+
+def _shifted_pixel_coords(triangle_uv, resolution):
+    p = np.asarray(triangle_uv, dtype=np.float64) * float(resolution)
+    return p - np.asarray(PIXEL_OFFSET)
+
+
+def _bake_differentials(p):
+    """Cycles' per-triangle barycentric differentials (T, 2, 2), as bake_differentials() does.
+
+    p: (T, 3, 2) corners in pixel space. Returns d(b1, b2)/d(x, y) * 0.5 (Blender's factor).
+    """
+    a, b, c = p[:, 0], p[:, 1], p[:, 2]
+    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    ok = np.abs(area2) > np.finfo(np.float32).eps
+    inv = np.where(ok, 0.5 / np.where(ok, area2, 1.0), 0.0)
+    d = np.empty((len(p), 2, 2))
+    # Blender: du_dx = (uv2.y - uv3.y) A, dv_dx = (uv3.y - uv1.y) A, du_dy = (uv3.x - uv2.x) A,
+    # dv_dy = (uv1.x - uv3.x) A with A = 0.5 / (2 * signed area); u weights corner 0, v corner 1.
+    d[:, 0, 0] = (b[:, 1] - c[:, 1]) * inv
+    d[:, 1, 0] = (c[:, 1] - a[:, 1]) * inv
+    d[:, 0, 1] = (c[:, 0] - b[:, 0]) * inv
+    d[:, 1, 1] = (a[:, 0] - c[:, 0]) * inv
+    return d
+
+
+def _interpolate_normals(triangle_normals, triangle, bary):
+    n = np.asarray(triangle_normals, dtype=np.float64)
+    if n.ndim == 3:  # per-corner normals: smooth shading
+        out = np.einsum("nk,nkj->nj", bary, n[triangle])
+    else:
+        out = n[triangle].copy()
+    length = np.linalg.norm(out, axis=-1, keepdims=True)
+    return out / np.where(length > 0, length, 1.0)
+
+
+def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution,
+                     max_candidates=1 << 22):
+    """Covered texels of an R x R image for triangles with UVs, exactly like Blender's bake.
+
+    triangle_uv       (T, 3, 2) UV of each corner
+    triangle_corners  (T, 3, 3) world positions of the corners (metres)
+    triangle_normals  (T, 3) face normals, or (T, 3, 3) corner normals (smooth shading)
+    resolution        R: image width = height in pixels
+    Returns a :class:`TexelSet` sorted by pixel (row-major from the bottom row).
+    """
+    R = int(resolution)
+    if R <= 0:
+        raise ValueError(f"Texel resolution must be positive, got {resolution}")
+    corners = np.asarray(triangle_corners, dtype=np.float64).reshape(-1, 3, 3)
+    T = len(corners)
+    p = _shifted_pixel_coords(np.asarray(triangle_uv).reshape(T, 3, 2), R)
+    finite = np.all(np.isfinite(p), axis=(1, 2))
+    pmin = np.where(finite[:, None], p.min(axis=1), 0.0)
+    pmax = np.where(finite[:, None], p.max(axis=1), -1.0)
+    x0 = np.clip(np.floor(pmin[:, 0]), 0, R)  # the left edge is exclusive: start at floor
+    x1 = np.clip(np.floor(pmax[:, 0]), -1, R - 1)
+    y0 = np.clip(np.ceil(pmin[:, 1]), 0, R)
+    y1 = np.clip(np.floor(pmax[:, 1]), -1, R - 1)
+    width = np.maximum(x1 - x0 + 1, 0).astype(np.int64)
+    height = np.maximum(y1 - y0 + 1, 0).astype(np.int64)
+    count = width * height
+    count[~finite] = 0
+
+    # Edge functions oriented so that the interior is positive; ``strict`` marks left edges.
+    a, b, c = p[:, 0], p[:, 1], p[:, 2]
+    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    sign = np.sign(area2)
+    count[sign == 0] = 0  # degenerate in UV: Blender skips it (z0 == 0)
+    # Edge k is opposite corner k: from corner k+1 to corner k+2. Each edge is evaluated from
+    # its endpoints in a canonical (y, x) order, so a shared edge gives exactly opposite values
+    # in its two triangles and a texel point on it is covered exactly once.
+    e_from = p[:, [1, 2, 0]]
+    e_to = p[:, [2, 0, 1]]
+    swap = (e_from[..., 1] > e_to[..., 1]) | ((e_from[..., 1] == e_to[..., 1]) & (e_from[..., 0] > e_to[..., 0]))
+    e_from, e_to = np.where(swap[..., None], e_to, e_from), np.where(swap[..., None], e_from, e_to)
+    e_sign = sign[:, None] * np.where(swap, -1.0, 1.0)  # orients each edge's interior positive
+    e_dy = e_to[..., 1] - e_from[..., 1]
+    strict = (e_sign * -e_dy) > 0  # interior at larger x: a left edge, exclusive
+
+    rows, cols, tris, barys = [], [], [], []
+    starts = np.concatenate([[0], np.cumsum(count)])
+    # Chunk over triangles so at most ~max_candidates pixel candidates live at once.
+    boundaries = np.searchsorted(starts, np.arange(0, starts[-1] + max_candidates, max_candidates))
+    boundaries = np.unique(np.clip(np.concatenate([boundaries, [T]]), 0, T))
+    lo = 0
+    for hi in boundaries:
+        if hi <= lo:
+            continue
+        tri = np.arange(lo, hi)
+        n_per = count[lo:hi]
+        total = int(n_per.sum())
+        lo = hi
+        if total == 0:
+            continue
+        t_idx = np.repeat(tri, n_per)
+        k = np.arange(total) - np.repeat(starts[tri] - starts[tri[0]], n_per)
+        w = width[t_idx]
+        px = x0[t_idx] + (k % w)
+        py = y0[t_idx] + (k // w)
+        ef = e_from[t_idx]
+        ed = e_to[t_idx] - ef
+        # cross(edge, point - from) for the 3 edges: (m, 3)
+        e = ed[..., 0] * (py[:, None] - ef[..., 1]) - ed[..., 1] * (px[:, None] - ef[..., 0])
+        e = e * e_sign[t_idx]
+        inside = np.all(np.where(strict[t_idx], e > 0, e >= 0), axis=1)
+        if not np.any(inside):
+            continue
+        e = e[inside]
+        rows.append(py[inside].astype(np.int32))
+        cols.append(px[inside].astype(np.int32))
+        tris.append(t_idx[inside])
+        barys.append(e / e.sum(axis=1, keepdims=True))
+
+    if rows:
+        row = np.concatenate(rows)
+        col = np.concatenate(cols)
+        triangle = np.concatenate(tris)
+        bary = np.concatenate(barys)
+        # Later triangles overwrite earlier ones (Blender rasterises in triangle order).
+        flat = row.astype(np.int64) * R + col
+        order = np.lexsort((triangle, flat))
+        flat_sorted = flat[order]
+        last = np.ones(len(order), dtype=bool)
+        last[:-1] = flat_sorted[1:] != flat_sorted[:-1]
+        keep = order[last]
+        row, col, triangle, bary = row[keep], col[keep], triangle[keep], bary[keep]
+    else:
+        row = col = np.zeros(0, np.int32)
+        triangle = np.zeros(0, np.int64)
+        bary = np.zeros((0, 3))
+
+    position = np.einsum("nk,nkj->nj", bary, corners[triangle])
+    normal = _interpolate_normals(triangle_normals, triangle, bary)
+    derivs = _bake_differentials(p)[triangle]
+    return TexelSet(R, row, col, triangle, bary, position, normal, derivs, corners,
+                    np.asarray(triangle_normals))
+
+
+#: Jitter attempts before Cycles falls back to the texel point (init_from_bake.h).
+JITTER_ATTEMPTS = 10
+
+
+def sample_footprint(texels, n, rng, include_center=True):
+    """``n`` points per texel distributed like Cycles' bake samples.
+
+    Sample 0 is the texel point itself (when ``include_center``); every other sample is uniform
+    in the half-pixel box around it, mapped through the triangle's bake differentials; a draw
+    that falls outside the triangle is redrawn up to :data:`JITTER_ATTEMPTS` times and then
+    replaced by the texel point (``bake_jitter_barycentric``). A bake averaged over many samples
+    is therefore the average over this footprint. ``rng``: a numpy Generator. Returns
+    :class:`FootprintSamples` with arrays of shape (n_texels, n, 3).
+    """
+    m = len(texels)
+    d = texels.pixel_barycentric_derivatives  # (m, 2, 2): d(b0, b1)/d(x, y)
+    b0 = np.broadcast_to(texels.barycentric[:, None, 0], (m, n)).copy()
+    b1 = np.broadcast_to(texels.barycentric[:, None, 1], (m, n)).copy()
+    pending = np.ones((m, n), dtype=bool)
+    if include_center and n > 0:
+        pending[:, 0] = False
+    for _ in range(JITTER_ATTEMPTS):
+        idx = np.nonzero(pending)
+        if len(idx[0]) == 0:
+            break
+        off = rng.random((len(idx[0]), 2)) - 0.5
+        dd = d[idx[0]]
+        ju = texels.barycentric[idx[0], 0] + dd[:, 0, 0] * off[:, 0] + dd[:, 0, 1] * off[:, 1]
+        jv = texels.barycentric[idx[0], 1] + dd[:, 1, 0] * off[:, 0] + dd[:, 1, 1] * off[:, 1]
+        ok = (ju > 0.0) & (jv > 0.0) & (ju + jv < 1.0)
+        b0[idx[0][ok], idx[1][ok]] = ju[ok]
+        b1[idx[0][ok], idx[1][ok]] = jv[ok]
+        pending[idx[0][ok], idx[1][ok]] = False
+    bary = np.stack([b0, b1, 1.0 - b0 - b1], axis=-1)
+    corners = texels.triangle_corners[texels.triangle]  # (m, 3, 3)
+    position = np.einsum("mnk,mkj->mnj", bary, corners)
+    normals = np.asarray(texels.triangle_normals, dtype=np.float64)
+    if normals.ndim == 3:
+        normal = np.einsum("mnk,mkj->mnj", bary, normals[texels.triangle])
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    else:
+        normal = np.broadcast_to(texels.normal[:, None, :], position.shape).copy()
+    return FootprintSamples(bary, position, normal)
+
+
+# Weights of IMB_filter_extend's 3 x 3 neighbourhood: 2 for edge neighbours, 1 for corners.
+_EXTEND_NEIGHBOURS = [(dy, dx, 1.0 if dx and dy else 2.0)
+                      for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
+
+
+def _shift(a, dy, dx, fill):
+    """out[y, x] = a[y + dy, x + dx] (``fill`` outside the image)."""
+    out = np.full_like(a, fill)
+    H, W = a.shape[:2]
+    ys = slice(max(0, -dy), min(H, H - dy))
+    xs = slice(max(0, -dx), min(W, W - dx))
+    yd = slice(max(0, dy), min(H, H + dy))
+    xd = slice(max(0, dx), min(W, W + dx))
+    out[ys, xs] = a[yd, xd]
+    return out
+
+
+def dilate(image, covered_mask, margin, return_mask=False):
+    """Fill ``margin`` pixels around the covered texels, like Cycles' ``margin_type='EXTEND'``.
+
+    Blender's ``IMB_filter_extend``: ``margin`` passes; in each pass every unassigned pixel with
+    an assigned 4-neighbour becomes the weighted mean of its assigned 8-neighbours (weight 2 for
+    edge neighbours, 1 for diagonal ones), reading the previous pass's values. Covered pixels are
+    never changed. ``image`` (R, R) or (R, R, C); ``covered_mask`` (R, R) bool. Returns the new
+    image (and the final assigned mask when ``return_mask``). ``'ADJACENT_FACES'`` is not
+    reproduced.
+    """
+    img = np.array(image, dtype=np.float64, copy=True)
+    squeeze = img.ndim == 2
+    if squeeze:
+        img = img[..., None]
+    assigned = np.array(covered_mask, dtype=bool, copy=True)
+    if assigned.shape != img.shape[:2]:
+        raise ValueError(f"Mask shape {assigned.shape} does not match image shape {img.shape[:2]}")
+    for _ in range(int(margin)):
+        four = np.zeros_like(assigned)
+        for dy, dx in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+            four |= _shift(assigned, dy, dx, False)
+        grow = four & ~assigned
+        if not np.any(grow):
+            break
+        acc = np.zeros_like(img)
+        wsum = np.zeros(assigned.shape)
+        for dy, dx, w in _EXTEND_NEIGHBOURS:
+            m = _shift(assigned, dy, dx, False)
+            acc += (w * m)[..., None] * _shift(img, dy, dx, 0.0)
+            wsum += w * m
+        img[grow] = acc[grow] / wsum[grow][:, None]
+        assigned |= grow
+    out = img[..., 0] if squeeze else img
+    out = out.astype(np.asarray(image).dtype if np.asarray(image).dtype.kind == "f" else np.float64)
+    return (out, assigned) if return_mask else out
