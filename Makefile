@@ -45,7 +45,7 @@ test-all: check-env venv
 	LMDP_SLOW_TESTS=1 $(PY) -m pytest tests $(PYTEST_ARGS)
 
 demo: check-env venv
-	$(PY) scripts/lmdp_headless.py --demo cornell --output out/demo
+	BLENDER_USER_RESOURCES=$(CURDIR)/out/blender-user $(PY) scripts/lmdp_headless.py --demo cornell --output out/demo
 
 wheels: check-python venv
 	$(PY) scripts/fetch_wheels.py --manifest blender_manifest.toml --dest $(WHEELS)

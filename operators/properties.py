@@ -10,6 +10,9 @@ from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, SOLVERS, Settings
 
 _DEFAULTS = Settings()
 
+#: Blender 4.5+ accepts (and warns without) this flag on paths that may start with '//'.
+_BLEND_RELATIVE_PATH = {'PATH_SUPPORTS_BLEND_RELATIVE'} if bpy.app.version >= (4, 5, 0) else set()
+
 COST_MODE_ITEMS = (
     ("THESIS", "Thesis",
      "The thesis's LMDP (section 3.1): rows of P normalised to probabilities with an epsilon "
@@ -164,7 +167,7 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         name="Output Folder",
         description="Folder where baked lightmaps (OpenEXR), statistics and exports are written; "
                     "empty: nothing is written to disk",
-        default=_DEFAULTS.output_dir, subtype='DIR_PATH',
+        default=_DEFAULTS.output_dir, subtype='DIR_PATH', options=_BLEND_RELATIVE_PATH,
     )
     memory_budget_gb: FloatProperty(
         name="Memory Budget",

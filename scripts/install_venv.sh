@@ -30,6 +30,13 @@ echo "lmdp: installing the pinned packages of $requirements into $venv (log: $lo
 if ! "$venv/bin/python" -m pip install --disable-pip-version-check --no-deps --only-binary=:all: \
         -r "$requirements" >"$log" 2>&1; then
     package="$(sed -n 's/.*No matching distribution found for \([^ ]*\).*/\1/p' "$log" | head -n 1)"
+    if [ -n "$package" ]; then
+        # pip only says why it found nothing at debug verbosity (when it does not retry): ask again.
+        diagnose="$(mktemp -d)"
+        "$venv/bin/python" -m pip download --disable-pip-version-check --no-deps --only-binary=:all: \
+            -vvv --dest "$diagnose" "$package" >>"$log" 2>&1 || true
+        rm -rf "$diagnose"
+    fi
     if grep -qiE 'NewConnectionError|Failed to establish a new connection|Temporary failure in name resolution|Name or service not known|No address associated|Network is unreachable|Connection refused|ConnectTimeout|timed out|ProxyError|Max retries exceeded|SSLError|Could not fetch URL|ConnectionError' "$log"; then
         echo "error: could not download ${package:-the pinned packages} from PyPI: check the network / proxy (pip's log: $log)" >&2
     elif [ -n "$package" ]; then

@@ -85,10 +85,15 @@ def register_checkout(checkout, repo_directory, repo_module="lmdp_checkout", rep
 
 
 def unregister_checkout(module_name, repo):
-    """Disable the add-on and remove the temporary repository of :func:`register_checkout`."""
+    """Remove the temporary repository of :func:`register_checkout` and disable the add-on.
+
+    Removing a repository makes Blender disable the add-ons it holds; whatever is still enabled
+    afterwards is disabled explicitly.
+    """
     import addon_utils
     import bpy
-    addon_utils.disable(module_name, default_set=True)
     repos = bpy.context.preferences.extensions.repos
     if repo is not None and any(r == repo for r in repos):
         repos.remove(repo)
+    if module_name in bpy.context.preferences.addons:
+        addon_utils.disable(module_name, default_set=True)

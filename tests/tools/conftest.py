@@ -1,0 +1,1 @@
+"""Tooling tests: Makefile, scripts/ and the manifest. Nothing here imports bpy."""
