@@ -54,6 +54,11 @@ class FirstExitLMDP:
         return self.q.shape[1]
 
     @property
+    def log_q(self):
+        """(m, C) ``log q = -λ g``, exact where q itself underflows (large λ)."""
+        return -self.lambda_ * np.asarray(self.g, dtype=np.float64)
+
+    @property
     def P_NN(self):
         return self.P[:, :self.n_points]
 

@@ -1,8 +1,8 @@
 """Solvers for the desirability z of the first-exit LMDP (thesis 2.2.2, 3.1.4, 4.1.1).
 
 All solvers work on an exactly rescaled unknown ``y = z ⊙ exp(δ)`` (``design.md``): with
-``δ_i = c̄ · hops_i`` (hops to the nearest lit terminal, ``c̄ = min -log q``) the rescaled matrix
-``A = D Q P_NN D^-1`` has entries no larger than P's, so nothing over- or underflows for any λ,
+``δ_i = c̄ · hops_i`` (hops to the nearest lit terminal, ``c̄ = min λg = min -log q``) the
+rescaled matrix ``A = D Q P_NN D^-1`` has entries no larger than P's, so nothing over- or underflows for any λ,
 and ``log z = log y - δ`` stays exact where z itself underflows float64.
 
 * ``POWER``     the thesis's iteration ``z <- QPz`` with terminal z fixed (eq. 2.22), random
@@ -109,16 +109,17 @@ def hops_to_light(lmdp):
 
 
 def rescaled_system(lmdp, dtype=np.float64):
-    """Rescaled ``A_c = diag(q_c) S`` (S shared by channels), ``b`` and the scale ``δ``.
+    """Rescaled system ``y = A y + b`` with ``A_c = diag(q̃_c) S``; see the module docstring.
 
-    Returns ``(S, q, b, delta, c_bar, reachable)`` with S CSR (m, m); see the module docstring.
+    ``S_ij = P_ij exp(δ_i - δ_j - c̄) <= P_ij`` and ``q̃ = exp(log q + c̄) <= 1`` are both formed
+    from logarithms, so nothing underflows even where q = exp(-λ g) itself is 0 in float64.
+    Returns ``(S, q̃, b, delta, c_bar, reachable)``.
     """
     m = lmdp.n_points
     hops = hops_to_light(lmdp)
     reachable = np.isfinite(hops)
-    q = np.asarray(lmdp.q, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        c = -np.log(q)
+    log_q = np.asarray(lmdp.log_q, dtype=np.float64)
+    c = -log_q
     finite_c = c[np.isfinite(c) & reachable[:, None]]
     c_bar = float(max(finite_c.min(), 0.0)) if finite_c.size else 0.0
     delta = np.where(reachable, c_bar * np.where(reachable, hops, 0.0), np.inf)
@@ -126,15 +127,14 @@ def rescaled_system(lmdp, dtype=np.float64):
     P_NN = sp.csr_matrix(lmdp.P_NN).tocoo()
     keep = reachable[P_NN.row] & reachable[P_NN.col] & (P_NN.data > 0)
     rows, cols = P_NN.row[keep], P_NN.col[keep]
-    # exp(δ_i - δ_j) <= exp(c̄) because hops_i <= hops_j + 1 along every transition.
-    data = P_NN.data[keep] * np.exp(delta[rows] - delta[cols])
+    # hops_i <= hops_j + 1 along every transition, so the exponent is <= 0.
+    data = P_NN.data[keep] * np.exp(np.minimum(delta[rows] - delta[cols] - c_bar, 0.0))
     S = sp.csr_matrix((data.astype(dtype), (rows, cols)), shape=(m, m))
+    q_scaled = np.exp(np.minimum(log_q + c_bar, 0.0))
     drive = lmdp.terminal_drive()
-    with np.errstate(over="ignore", invalid="ignore"):
-        scale = np.where(reachable, np.exp(np.minimum(delta, 700.0)), 0.0)
-    b = np.where(reachable[:, None], q * scale[:, None] * drive, 0.0)
-    # Only states one hop from a lit terminal have drive > 0; there exp(δ) = exp(c̄) <= 1/q.
-    return S, q.astype(dtype), b.astype(dtype), delta, c_bar, reachable
+    # Only states one hop from a lit terminal have drive > 0, and there δ = c̄.
+    b = np.where(reachable[:, None] & (hops[:, None] == 1), q_scaled * drive, 0.0)
+    return S, q_scaled.astype(dtype), b.astype(dtype), delta, c_bar, reachable
 
 
 def _apply(S, q, y):
