@@ -1,6 +1,6 @@
 """The extension registers through Blender's extension mechanism and unregisters cleanly."""
-import addon_utils
-import bpy
+import bpy  # first: importing bpy puts addon_utils on sys.path
+import addon_utils  # noqa: E402
 import pytest
 
 PANELS = ("LMDP_PT_main", "LMDP_PT_sample", "LMDP_PT_build", "LMDP_PT_solve", "LMDP_PT_show", "LMDP_PT_bake")
@@ -69,3 +69,22 @@ def test_a_missing_submodule_fails_loudly_and_registers_nothing(fresh_scene, lmd
 
 def _raise(error):
     raise error
+
+
+def test_blender_installs_the_manifest_wheels_that_exist(lmdp_ext, repo_root):
+    """Enabling the extension installs its wheels for this platform into the user's extensions
+    site-packages; manifest entries without a file (no `make extension` yet) are skipped."""
+    import os
+    import platform
+    import tomllib
+    from pathlib import Path
+
+    if not (platform.system() == "Linux" and platform.machine() == "x86_64"):
+        pytest.skip("checks the linux-x64 wheels")
+    with open(repo_root / "blender_manifest.toml", "rb") as fh:
+        wheels = [w for w in tomllib.load(fh)["wheels"] if "manylinux" in w]
+    present = {Path(w).name.split("-")[0] for w in wheels if (repo_root / w).is_file()}
+    site_packages = (Path(os.environ["BLENDER_USER_RESOURCES"]) / "extensions" / ".local" / "lib"
+                     / "python3.11" / "site-packages")
+    installed = {name for name in ("scipy", "embreex") if (site_packages / name).is_dir()}
+    assert installed == present
