@@ -1,8 +1,8 @@
 """Passive dynamics (thesis 3.1.2, eq. 3.1) estimated by casting rays through every stratum.
 
-For point x and stratum k, ``rays_per_stratum`` jittered rays leave x through stratum k. Each
-ray carries ``w_k / R``, where ``w_k = ∫_k cos θ dω / π`` is the exact Lambertian (BRDF·cos)
-mass of the stratum, and lands in one next state:
+For point x and stratum k, ``rays_per_stratum`` (R) rays leave x through stratum k, drawn with
+density proportional to BRDF·cos within the stratum, so each carries exactly ``w_k / R``, where
+``w_k = ∫_k cos θ dω / π`` is the Lambertian mass of the stratum; each lands in one next state:
 
 * the nearest state point on the hit object whose normal faces the side that was hit
   (the next state is that point with the reversed ray direction as outgoing direction; for the
@@ -12,7 +12,8 @@ mass of the stratum, and lands in one next state:
 * the void terminal (z = 0): geometry that carries no states, back faces of one-sided
   emitters, hits with no compatible state, and escapes into a black world.
 
-Because the stratum masses sum to one and every ray lands somewhere, each row of P sums to one.
+The estimate of each p(x'|x) is unbiased, and since the stratum masses sum to one and every ray
+lands somewhere, each row of P sums to exactly one.
 No Python loop runs over rays or states: rays are generated, traced and binned in large batches.
 """
 import time
@@ -43,7 +44,8 @@ class PassiveDynamics:
     """Sparse passive dynamics p(x'|x) of the point-level states plus the terminal states.
 
     stratum_transitions  CSR (m*S, n) float32: row ``i*S + k`` holds the mass that rays leaving
-                         point i through stratum k deliver to each next state (sums to w_k)
+                         point i through stratum k deliver to each next state (sums to w_k, the
+                         stratum's cosine mass ∫_k cos θ dω / π)
     P                    CSR (m, n) float32: point-level passive dynamics, rows sum to 1
     n_points, n_strata   m, S
     emitter_radiance     (E, 3) radiance of each emitter terminal (W / sr m^2)
@@ -90,6 +92,11 @@ class PassiveDynamics:
 
     def terminal_labels(self):
         return [f"emitter:{n}" for n in self.emitter_names] + [WORLD, VOID]
+
+    @property
+    def row_sum_error(self):
+        """Largest deviation of a row sum of P from 1 (float32 rounding only)."""
+        return float(np.abs(np.asarray(self.P.sum(axis=1)).ravel() - 1.0).max()) if self.n_points else 0.0
 
     def memory_bytes(self):
         return sum(m.data.nbytes + m.indices.nbytes + m.indptr.nbytes
@@ -229,24 +236,38 @@ class StateLocator:
 
 
 class DirectionPatterns:
-    """A pool of jittered local ray patterns, one per point modulo the pool size.
+    """A pool of ray patterns, one per point modulo the pool size: R directions per stratum.
 
-    Each pattern holds R directions in every stratum, a randomly shifted rank-1 lattice
-    ``((r + ξ)/R, frac(r/φ + ξ'))`` mapped through the stratum, so rays spread over the stratum.
-    Sharing patterns between distant points keeps the per-point estimate stratified and unbiased
-    while the warp runs once per pattern instead of once per ray.
+    Within stratum k the R directions are drawn independently with density proportional to
+    BRDF·cos (by rejection from the uniform-solid-angle cell), so each ray carries exactly
+    ``w_k / R`` of the stratum's cosine mass ``w_k = ∫_k cos θ dω / π``: the estimate of
+    ``p(x'|x)`` is unbiased and every row of P sums to one exactly. Sharing patterns between
+    points keeps every point's estimate stratified and unbiased while the warp runs once per
+    pattern instead of once per ray.
     """
 
     def __init__(self, strata_u, strata_v, rays_per_stratum, rng, pool=64):
         S, R = strata_u * strata_v, int(rays_per_stratum)
-        stratum = np.tile(np.repeat(np.arange(S), R), pool)
-        r = np.tile(np.arange(R), pool * S)
-        shift = rng.random((pool * S, 2)).repeat(R, axis=0)
-        u, v = stratum_square_samples(stratum, (r + shift[:, 0]) / R,
-                                      np.mod(r * GOLDEN + shift[:, 1], 1.0), strata_u, strata_v)
-        self.local = square_to_hemisphere(u, v).reshape(pool, S * R, 3).astype(np.float32)
         self.pool = pool
         self.ray_stratum = np.repeat(np.arange(S), R)
+        stratum = np.tile(self.ray_stratum, pool)
+        # Largest cos θ = 1 - max(a², b²) over each cell, (a, b) = 2(u, v) - 1.
+        k = np.arange(S)
+        a0, a1 = 2.0 * (k // strata_v) / strata_u - 1.0, 2.0 * (k // strata_v + 1) / strata_u - 1.0
+        b0, b1 = 2.0 * (k % strata_v) / strata_v - 1.0, 2.0 * (k % strata_v + 1) / strata_v - 1.0
+        a_min = np.where((a0 < 0) & (a1 > 0), 0.0, np.minimum(a0 ** 2, a1 ** 2))
+        b_min = np.where((b0 < 0) & (b1 > 0), 0.0, np.minimum(b0 ** 2, b1 ** 2))
+        cos_max = 1.0 - np.maximum(a_min, b_min)
+        local = np.empty((len(stratum), 3))
+        todo = np.arange(len(stratum))
+        while len(todo):  # rounds of rejection sampling (a few), vectorised over all rays
+            u, v = stratum_square_samples(stratum[todo], rng.random(len(todo)), rng.random(len(todo)),
+                                          strata_u, strata_v)
+            d = square_to_hemisphere(u, v)
+            accept = rng.random(len(todo)) * cos_max[stratum[todo]] < d[:, 2]
+            local[todo[accept]] = d[accept]
+            todo = todo[~accept]
+        self.local = local.reshape(pool, S * R, 3).astype(np.float32)
 
     def directions(self, frames, point_ids):
         """World directions (len(point_ids) * S * R, 3) for the points with these frames."""
@@ -321,7 +342,7 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
                            memory_budget_gb=None, caster=None, exact_nearest=False):
     """Estimate the passive dynamics of every state by ray casting (thesis 3.1.2, eq. 3.1).
 
-    Returns a :class:`PassiveDynamics` with rows summing to one (Lambertian BRDF·cos mass).
+    Returns a :class:`PassiveDynamics` whose rows sum to one (Lambertian BRDF·cos mass).
     """
     t0 = time.perf_counter()
     R = int(rays_per_stratum)
@@ -337,14 +358,13 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
     classifier = HitClassifier(scene, locator, m)
     rng = np.random.default_rng([int(seed), 0x1DA7])
     patterns = DirectionPatterns(states.strata_u, states.strata_v, R, rng)
-    weight_per_ray = (states.stratum_weight / R).astype(np.float32)
     # Every ray leaves through the upper hemisphere of its point: offset along the normal.
     lifted = (states.points + caster.offset() * states.normals).astype(np.float32)
     frames = states.frames.astype(np.float32)
     t_setup = time.perf_counter() - t0
 
     points_per_batch = max(1, RAYS_PER_BATCH // (S * R))
-    weights_per_row = np.repeat(weight_per_ray, R)
+    weights_per_row = np.repeat(states.stratum_weight / R, R).astype(np.float32)
 
     def trace_batch(start):
         """Rays of a batch of points -> CSR block of the stratum-resolved dynamics."""

@@ -24,8 +24,8 @@ def export_npz(path, states, dynamics, lmdp, solution, extra=None):
     C = lmdp.n_channels
     P = sp.csr_matrix(lmdp.P)
     q = np.vstack([lmdp.q, np.ones((nT, C))])
+    log_q = np.vstack([lmdp.log_q, np.zeros((nT, C))])  # exact where q = exp(-λ g) underflows
     with np.errstate(divide="ignore"):
-        log_q = np.log(q)
         log_zt = np.log(solution.z_terminal)
     z = np.vstack([solution.z, solution.z_terminal])
     log_z = np.vstack([solution.log_z, log_zt])

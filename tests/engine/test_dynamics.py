@@ -1,0 +1,172 @@
+"""Passive dynamics by ray casting (thesis 3.1.2, eq. 3.1) against geometry with known answers."""
+import numpy as np
+import pytest
+
+from lmdp_addon import hemisphere as H
+from lmdp_addon.dynamics import DirectionPatterns, StateLocator, build_passive_dynamics, estimate_build_bytes
+from lmdp_addon.errors import BudgetError
+from lmdp_addon.scene import SceneArrays
+from lmdp_addon.scenes import (PARALLEL_SQUARES, Part, build_scene_arrays, parts_to_scene_arrays,
+                               point_to_parallel_square_form_factor, scene_parts)
+from lmdp_addon.states import sample_states
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    scene = build_scene_arrays("CORNELL_BOX")
+    states = sample_states(scene, 1500, 4, 4, seed=3)
+    return scene, states, build_passive_dynamics(scene, states, 4, seed=3)
+
+
+def test_rows_are_stochastic_and_strata_carry_their_cosine_mass(cornell):
+    scene, states, dyn = cornell
+    assert dyn.P.shape == (states.n_points, states.n_points + dyn.n_emitters + 2)
+    assert dyn.P.dtype == np.float32 and dyn.P.indices.dtype == np.int32
+    assert dyn.row_sum_error < 1e-5
+    per_stratum = np.asarray(dyn.stratum_transitions.sum(axis=1)).reshape(-1, states.n_strata)
+    assert np.allclose(per_stratum, states.stratum_weight[None, :], atol=1e-6)
+    c = dyn.counts
+    assert c["points"] + c["emitters"] + c["world"] + c["void"] == dyn.rays == 1500 * 16 * 4
+    # The Cornell box is open at the front: some rays escape into the black world (void).
+    assert c["void_escape"] > 0 and c["emitters"] > 0 and c["world"] == 0
+
+
+def test_ray_directions_follow_brdf_cos_within_each_stratum():
+    """Rays in stratum k have density ∝ cos θ there: E[1/cos] over stratum k's rays equals
+    Ω_k / (π w_k) (the solid angle over the cosine mass)."""
+    su, sv, R = 4, 4, 4096
+    pat = DirectionPatterns(su, sv, R, np.random.default_rng(0), pool=1)
+    d = pat.local[0].astype(np.float64)
+    k = H.stratum_of_local_direction(d, su, sv)
+    assert np.array_equal(k, pat.ray_stratum)
+    w = H.stratum_cosine_weights(su, sv)
+    inv_cos = (1.0 / d[:, 2]).reshape(su * sv, R)
+    expected = H.stratum_solid_angle(su, sv) / (np.pi * w)
+    sem = inv_cos.std(axis=1) / np.sqrt(R)
+    assert np.all(np.abs(inv_cos.mean(axis=1) - expected) < 5 * sem)
+
+
+def test_deterministic_for_a_seed(cornell):
+    scene, states, dyn = cornell
+    again = build_passive_dynamics(scene, states, 4, seed=3)
+    assert (abs(again.P - dyn.P)).max() == 0
+    other = build_passive_dynamics(scene, states, 4, seed=4)
+    assert (abs(other.P - dyn.P)).max() > 0
+
+
+def test_grid_lookup_is_the_nearest_point_to_within_a_cell(cornell):
+    """The tabulated lookup agrees with an exact cKDTree query up to one grid cell."""
+    scene, states, _ = cornell
+    grid = StateLocator(scene, states)
+    rng = np.random.default_rng(0)
+    tri = rng.choice(np.flatnonzero(scene.state_triangles()), 100_000)
+    u, v = rng.random(len(tri)), rng.random(len(tri))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    c = scene.corners()[tri]
+    pos = c[:, 0] + u[:, None] * (c[:, 1] - c[:, 0]) + v[:, None] * (c[:, 2] - c[:, 0])
+    approx = grid.locate_front(tri, u, v)
+    exact = grid.locate(pos, grid.face_normals[tri], scene.triangle_object[tri])
+
+    def dist6(ids):
+        a = grid.alpha[scene.triangle_object[tri]][:, None]
+        return np.linalg.norm(np.hstack([states.points[ids] - pos, a * (states.normals[ids] - grid.face_normals[tri])]), axis=1)
+
+    extra = dist6(approx) - dist6(exact)
+    spacing = grid.alpha[scene.triangle_object[tri]]
+    cell_diagonal = np.sqrt(2) / grid.CELLS_PER_SPACING * spacing * 2  # cell sides <= spacing / 4 (x2: skew)
+    assert np.all(extra >= -1e-12)
+    assert np.all(extra <= cell_diagonal + 1e-12)
+    assert np.mean(approx == exact) > 0.8
+    exact_mode = StateLocator(scene, states, exact=True)
+    assert np.array_equal(exact_mode.locate_front(tri, u, v, pos), exact)
+
+
+def test_plane_under_sky_sends_every_ray_to_the_world():
+    scene = build_scene_arrays("PLANE_UNDER_SKY")
+    states = sample_states(scene, 200, 4, 4, seed=0)
+    dyn = build_passive_dynamics(scene, states, 2, seed=0)
+    assert np.allclose(dyn.P[:, dyn.world_column].toarray(), 1.0, atol=1e-5)
+    assert dyn.counts["world"] == dyn.rays
+
+
+def _moved(part, name, dz=0.0, scale=1.0, flip=False, emitter=None):
+    """Copy of a part, scaled in x/y, moved along z, optionally flipped or made emitting."""
+    v = part.vertices * [scale, scale, 1.0] + [0, 0, dz]
+    faces = part.faces[:, ::-1] if flip else part.faces
+    if emitter is None:
+        return Part(name, v, faces, part.face_uv, part.albedo)
+    return Part(name, v, faces, part.face_uv, np.zeros(3), part.emission, two_sided_emission=emitter == "two")
+
+
+def test_back_face_hits_go_to_the_void():
+    receiver, light = scene_parts("PARALLEL_SQUARES")
+    below = _moved(receiver, "Below", dz=-0.5, scale=0.5)  # faces up, into Receiver's back
+    scene = parts_to_scene_arrays([receiver, light, below], selected=["Receiver", "Below"])
+    states = sample_states(scene, 400, 4, 4, seed=1)
+    dyn = build_passive_dynamics(scene, states, 4, seed=1)
+    below_ids = np.flatnonzero(states.point_object == 2)
+    assert dyn.counts["back_faces"] > 0 and dyn.counts["void_no_state"] == dyn.counts["back_faces"]
+    # Straight up from "Below" is Receiver's back: most of its mass goes to the void.
+    assert dyn.P[below_ids, dyn.void_column].toarray().mean() > 0.5
+
+
+def test_unselected_geometry_occludes_and_absorbs():
+    receiver, light = scene_parts("PARALLEL_SQUARES")
+    ceiling = _moved(receiver, "Ceiling", dz=2.0, scale=6.0, flip=True)  # faces down, not selected
+    scene = parts_to_scene_arrays([receiver, light, ceiling], selected=["Receiver"])
+    states = sample_states(scene, 300, 4, 4, seed=2)
+    dyn = build_passive_dynamics(scene, states, 4, seed=2)
+    assert dyn.counts["void_unmodelled"] > 0 and dyn.counts["emitters"] > 0
+
+
+@pytest.mark.parametrize("sidedness,expect_light", [("one", False), ("two", True)])
+def test_back_of_a_one_sided_emitter_is_dark(sidedness, expect_light):
+    receiver, light = scene_parts("PARALLEL_SQUARES")
+    emitter = _moved(light, "Lamp", emitter=sidedness)              # faces down at z = 1
+    top = _moved(receiver, "Top", dz=1.5, flip=True)                # faces down, onto its back
+    scene = parts_to_scene_arrays([emitter, top], selected=["Top"])
+    states = sample_states(scene, 200, 4, 4, seed=0)
+    assert np.allclose(states.normals, [0, 0, -1])
+    dyn = build_passive_dynamics(scene, states, 4, seed=0)
+    assert (dyn.counts["emitters"] > 0) == expect_light
+    assert (dyn.counts["void_emitter_back"] > 0) != expect_light
+
+
+def test_form_factor_to_a_parallel_square_matches_the_analytic_value():
+    """P(point -> emitter) is the point-to-square form factor F. Tolerance from the estimator's
+    variance: stratum k contributes w_k times the mean of R Bernoulli(f_k) draws (f_k: the
+    chance that a cosine-distributed ray of the stratum hits), so Var <= Σ_k w_k^2 / (4R) per
+    point; the mean error over n points has variance <= that / n."""
+    scene = build_scene_arrays("PARALLEL_SQUARES")
+    R = 16
+    states = sample_states(scene, 600, 4, 4, seed=5)
+    dyn = build_passive_dynamics(scene, states, R, seed=5)
+    p = PARALLEL_SQUARES
+    F = point_to_parallel_square_form_factor(p["emitter_side"], p["height"], offset=-states.points[:, :2])
+    est = dyn.P[:, states.n_points].toarray().ravel()
+    sigma = np.sqrt(np.sum(states.stratum_weight ** 2) / (4 * R))
+    err = est - F
+    assert np.abs(err).max() < 5 * sigma
+    assert abs(err.mean()) < 5 * sigma / np.sqrt(len(err))
+
+
+def test_form_factor_at_the_centre_with_fine_strata():
+    scene = build_scene_arrays("PARALLEL_SQUARES")
+    states = sample_states(scene, 1, 8, 8, seed=0)
+    states.points[0] = [0.0, 0.0, 0.0]
+    R = 256
+    dyn = build_passive_dynamics(scene, states, R, seed=0)
+    p = PARALLEL_SQUARES
+    F = point_to_parallel_square_form_factor(p["emitter_side"], p["height"])
+    sigma = np.sqrt(np.sum(states.stratum_weight ** 2) / (4 * R))
+    assert dyn.P[0, 1] == pytest.approx(F, abs=5 * sigma)
+    assert abs(dyn.P[0, 1] - F) / F < 0.01  # in practice far tighter than the bound
+
+
+def test_memory_budget_is_checked_before_any_work():
+    scene = build_scene_arrays("CORNELL_BOX")
+    states = sample_states(scene, 1000, 4, 4)
+    need = estimate_build_bytes(1000, 16, 4)
+    with pytest.raises(BudgetError, match=r"GiB.*budget"):
+        build_passive_dynamics(scene, states, 4, memory_budget_gb=need / 2 / 1024 ** 3)
