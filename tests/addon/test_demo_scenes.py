@@ -1,9 +1,9 @@
 """Demo scenes in Blender (operators/demo_scenes.py, operators/ops_scenes.py) and the Cycles
 conventions they rely on, measured with real Cycles bakes (docs/cycles_conventions.md).
 
-Monte Carlo tolerances: every Cycles comparison bakes twice with different seeds; the per-texel
-standard error of the mean of the two is sigma = std(a - b) / 2, and a bake agrees with an
-analytic value when it is within 5 sigma per texel (and 5 sigma / sqrt(n) for the image mean).
+Monte Carlo tolerances: every Cycles comparison bakes twice with different seeds; the RMS
+per-texel standard error of the mean of the two is sigma = std(a - b) / 2 (see
+assert_matches_monte_carlo); image means agree within 5 sigma / sqrt(n).
 """
 import os
 import tempfile
@@ -49,6 +49,21 @@ def two_bakes(demo, obj, **kwargs):
     mean = (a + b) / 2
     sigma = float(np.std(a[..., :3] - b[..., :3])) / 2 + 1e-7
     return mean, sigma
+
+
+def assert_matches_monte_carlo(measured, expected, sigma):
+    """A Cycles estimate equals ``expected`` within its noise.
+
+    ``sigma`` is the RMS per-texel standard error (from two seeds): the texel errors must have an
+    RMS of about sigma (< 1.5 sigma), their mean must be within 5 sigma / sqrt(n) of 0, and no
+    texel may be off by more than 8 sigma (the noise differs between texels, so the largest
+    error is not Gaussian in the global sigma; a 0.5 % model error is still > 8 sigma here).
+    """
+    err = np.asarray(measured, dtype=np.float64) - np.asarray(expected, dtype=np.float64)
+    n = err.size
+    assert np.sqrt(np.mean(err ** 2)) < 1.5 * sigma, f"RMS error {np.sqrt(np.mean(err ** 2)):.3g} vs sigma {sigma:.3g}"
+    assert abs(err.mean()) < 5 * sigma / np.sqrt(n), f"mean error {err.mean():.3g} vs sigma {sigma:.3g}"
+    assert np.abs(err).max() < 8 * sigma, f"max error {np.abs(err).max():.3g} vs sigma {sigma:.3g}"
 
 
 def texel_points(texels, obj, resolution):
@@ -168,11 +183,13 @@ def test_emissive_mesh_is_two_sided_and_counts_as_direct_light(fresh_scene, demo
     indirect = demo.bake_cycles(bpy.context, receiver, pass_filter=('INDIRECT',), resolution=R, samples=16)
     ts = texel_points(texels, receiver, R)
     p = library.PARALLEL_SQUARES
-    F = library.point_to_parallel_square_form_factor(p["emitter_side"], p["height"], -ts.position[:, :2])
+    # Cycles averages each texel over its footprint (texels.sample_footprint): so does the reference.
+    footprint = texels.sample_footprint(ts, 4000, np.random.default_rng(0))
+    F = library.point_to_parallel_square_form_factor(p["emitter_side"], p["height"],
+                                                     -footprint.position[..., :2]).mean(axis=1)
     expected = np.outer(F, p["radiance"])
     measured = direct[ts.row, ts.col, :3]
-    assert np.abs(measured - expected).max() < 5 * sigma + 1e-4
-    assert abs(measured.mean() - expected.mean()) < 5 * sigma / np.sqrt(len(ts)) + 1e-4
+    assert_matches_monte_carlo(measured, expected, sigma)
     assert np.abs(indirect[..., :3]).max() == 0.0  # the emitter seen directly is DIRECT light
 
 
