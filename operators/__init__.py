@@ -13,8 +13,10 @@ MODULE_NAMES = (
     "session",
     "jobs",
     "panel",
+    "ops_scenes",
+    "ops_pipeline",
     # Later modules, each added here when it lands:
-    # "ops_pipeline", "ops_display", "gizmos", "ops_bake", "ops_scenes",
+    # "ops_display", "gizmos", "ops_bake",
 )
 
 _registered = []

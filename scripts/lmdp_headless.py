@@ -35,7 +35,8 @@ sys.path.insert(0, HERE)
 
 import lmdp_extension  # noqa: E402  (needs HERE on sys.path, also under `blender --python`)
 
-DEMO_KINDS = {"cornell": "CORNELL_BOX"}
+DEMO_KINDS = {"cornell": "CORNELL_BOX", "narrow_opening": "NARROW_OPENING", "plane_under_sky": "PLANE_UNDER_SKY",
+              "parallel_squares": "PARALLEL_SQUARES", "heavy": "HEAVY"}
 STAGE_OPERATORS = ("lmdp.sample_states", "lmdp.build_dynamics", "lmdp.solve",
                    "lmdp.show_desirability", "lmdp.bake")
 
