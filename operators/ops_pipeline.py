@@ -1,0 +1,231 @@
+"""Operators of the LMDP stages: sample states, build dynamics, solve, export.
+
+Each operator is thin (``jobs.EngineJob``): ``prepare`` reads Blender data into engine arrays,
+``compute`` calls :mod:`lmdp_addon.pipeline` (no bpy), ``apply`` stores the result in the
+scene's session. The scene is captured (``SceneArrays``) when the states are sampled; later
+stages work on that snapshot, so edit the scene and sample again to see the change.
+"""
+import os
+
+import bpy
+from bpy.props import StringProperty
+from bpy_extras.io_utils import ExportHelper
+
+from ..lmdp_addon import pipeline
+from ..lmdp_addon.dynamics import build_passive_dynamics, check_budget
+from ..lmdp_addon.errors import SceneError, StageOrderError
+from ..lmdp_addon.export import export_npz
+from .common import report_error, report_warnings, selected_meshes
+from .extract import extract_scene
+from .jobs import EngineJob
+from .session import format_bytes, session_for
+
+
+def capture_scene(context):
+    """SceneArrays of the current scene with the selected meshes carrying the states."""
+    meshes = selected_meshes(context)
+    scene = extract_scene(context, meshes)
+    scene.check_for_lmdp()
+    return scene, [obj.name for obj in meshes]
+
+
+def store_scene(context, scene, names):
+    """Keep the captured scene in the session (clears every result computed from the old one)."""
+    session = session_for(context.scene)
+    session.store("scene_arrays", scene)
+    session.object_names = tuple(names)
+    return session
+
+
+class LMDP_OT_sample_states(EngineJob, bpy.types.Operator):
+    """Sample surface points on the selected meshes and split their hemispheres into strata
+    (the LMDP states, thesis 3.1.1)"""
+
+    bl_idname = "lmdp.sample_states"
+    bl_label = "Sample States"
+    bl_options = {'REGISTER'}
+    stage = "sample"
+
+    def prepare(self, context):
+        return capture_scene(context)
+
+    def compute(self, inputs, settings, progress):
+        scene, names = inputs
+        states, _ = pipeline.run_sample(scene, settings, _Nested(progress))
+        return scene, names, states
+
+    def apply(self, context, result):
+        scene, names, states = result
+        session = store_scene(context, scene, names)
+        session.store("states", states, seconds=self.compute_seconds, settings=self.settings)
+        report_warnings(self, scene.warnings)
+        return f"Sampled {states.summary()} on {', '.join(names)}"
+
+
+class LMDP_OT_build_dynamics(EngineJob, bpy.types.Operator):
+    """Cast rays through every stratum of every state to build the sparse passive dynamics P
+    (thesis 3.1.2)"""
+
+    bl_idname = "lmdp.build_dynamics"
+    bl_label = "Build Dynamics"
+    bl_options = {'REGISTER'}
+    stage = "build"
+
+    def prepare(self, context):
+        selected_meshes(context)
+        session = session_for(context.scene)
+        states = session.require("states")
+        scene = session.require("scene_arrays")
+        s = self.settings
+        check_budget(states.n_points, states.n_strata, s.rays_per_stratum, s.memory_budget_gb)
+        return scene, states
+
+    def compute(self, inputs, settings, progress):
+        scene, states = inputs
+        return build_passive_dynamics(scene, states, settings.rays_per_stratum, seed=settings.seed,
+                                      progress=progress, memory_budget_gb=settings.memory_budget_gb)
+
+    def apply(self, context, dynamics):
+        session = session_for(context.scene)
+        session.store("dynamics", dynamics, seconds=self.compute_seconds, settings=self.settings)
+        rate = dynamics.rays / max(self.compute_seconds, 1e-9)
+        return (f"Built {dynamics.summary()} in {self.compute_seconds:.2f} s "
+                f"({rate / 1e6:.2f} Mrays/s, {format_bytes(dynamics.memory_bytes())})")
+
+
+class LMDP_OT_solve(EngineJob, bpy.types.Operator):
+    """Solve the first-exit LMDP for the desirability z (thesis eq. 2.22) and derive the
+    optimal policy u* and the cost-to-go J"""
+
+    bl_idname = "lmdp.solve"
+    bl_label = "Solve"
+    bl_options = {'REGISTER'}
+    stage = "solve"
+
+    def prepare(self, context):
+        selected_meshes(context)
+        session = session_for(context.scene)
+        dynamics = session.require("dynamics")
+        return session.require("scene_arrays"), session.require("states"), dynamics
+
+    def compute(self, inputs, settings, progress):
+        scene, states, dynamics = inputs
+        lmdp, solution, _ = pipeline.run_solve(scene, states, dynamics, settings, _Nested(progress))
+        return lmdp, solution
+
+    def apply(self, context, result):
+        lmdp, solution = result
+        session = session_for(context.scene)
+        session.store("costs", lmdp, settings=self.settings)
+        session.store("solution", solution, seconds=self.compute_seconds, settings=self.settings)
+        if not solution.converged:
+            self.report({'WARNING'}, f"The {solution.solver} solver did not converge: {solution.message}")
+        if solution.n_unreachable:
+            self.report({'WARNING'}, f"{solution.n_unreachable} states cannot reach any light (z = 0, J = inf); "
+                                     "they keep the passive dynamics as their policy")
+        return solution.summary() + (f", λ = {lmdp.lambda_:.4g}" if lmdp.cost_mode == "THESIS" else "")
+
+
+class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
+    """Run every LMDP stage on the selected meshes: sample, build, solve"""
+
+    bl_idname = "lmdp.run_pipeline"
+    bl_label = "Run All"
+    bl_options = {'REGISTER'}
+    stage = ""  # compute reports its own stages
+
+    def prepare(self, context):
+        scene, names = capture_scene(context)
+        s = self.settings
+        check_budget(s.point_count, s.strata_count, s.rays_per_stratum, s.memory_budget_gb)
+        return scene, names
+
+    def compute(self, inputs, settings, progress):
+        scene, names = inputs
+        return names, pipeline.run_all(scene, settings, progress)
+
+    def apply(self, context, result):
+        names, r = result
+        session = store_scene(context, r.scene, names)
+        session.store("states", r.states, seconds=r.seconds["sample"], settings=self.settings)
+        session.store("dynamics", r.dynamics, seconds=r.seconds["build"], settings=self.settings)
+        session.store("costs", r.lmdp, settings=self.settings)
+        session.store("solution", r.solution, seconds=r.seconds["solve"], settings=self.settings)
+        report_warnings(self, r.scene.warnings)
+        if not r.solution.converged:
+            self.report({'WARNING'}, f"The {r.solution.solver} solver did not converge: {r.solution.message}")
+        total = sum(r.seconds.values())
+        return f"LMDP solved on {', '.join(names)} in {total:.2f} s: {r.solution.summary()}"
+
+
+class LMDP_OT_export_npz(bpy.types.Operator, ExportHelper):
+    """Write the states, passive dynamics, state costs, desirability and optimal policy to a
+    NumPy .npz file (reload with numpy/scipy only)"""
+
+    bl_idname = "lmdp.export_npz"
+    bl_label = "Export LMDP (.npz)"
+    bl_options = {'REGISTER'}
+
+    filename_ext = ".npz"
+    filter_glob: StringProperty(default="*.npz", options={'HIDDEN'})
+    filepath: StringProperty(
+        name="File Path",
+        description="Where to write the .npz file (empty: lmdp.npz in the Output Directory)",
+        subtype='FILE_PATH', default="")
+
+    def invoke(self, context, event):
+        try:
+            session_for(context.scene).require("solution")
+        except StageOrderError as error:
+            return report_error(self, error)
+        return ExportHelper.invoke(self, context, event)
+
+    def execute(self, context):
+        try:
+            session = session_for(context.scene)
+            solution = session.require("solution")
+            path = self.filepath
+            if not path:
+                out = bpy.path.abspath(context.scene.lmdp.output_dir)
+                if not out:
+                    raise SceneError("Set a file path (filepath=...) or an Output Directory to export to")
+                path = os.path.join(out, "lmdp.npz")
+            path = bpy.path.abspath(path)
+            if not path.endswith(".npz"):
+                path += ".npz"
+            folder = os.path.dirname(path)
+            if folder and not os.path.isdir(folder):
+                raise SceneError(f"The folder {folder} does not exist: create it or pick another file path")
+            export_npz(path, session.require("states"), session.require("dynamics"), session.require("costs"),
+                       solution, extra={"objects": list(session.object_names), "blend": bpy.data.filepath})
+        except Exception as error:
+            return report_error(self, error)
+        self.report({'INFO'}, f"Exported the LMDP to {path}")
+        return {'FINISHED'}
+
+
+class _Nested:
+    """Progress proxy for a stage called inside an EngineJob that already began the stage."""
+
+    def __init__(self, progress):
+        self._progress = progress
+
+    def begin(self, stage):
+        pass
+
+    def update(self, fraction, message=""):
+        self._progress.update(fraction, message)
+
+    def end(self, message=""):
+        return 0.0
+
+
+classes = (
+    LMDP_OT_sample_states,
+    LMDP_OT_build_dynamics,
+    LMDP_OT_solve,
+    LMDP_OT_run_pipeline,
+    LMDP_OT_export_npz,
+)
+
+register, unregister = bpy.utils.register_classes_factory(classes)
