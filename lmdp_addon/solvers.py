@@ -137,6 +137,17 @@ def rescaled_system(lmdp, dtype=np.float64):
     return S, q_scaled.astype(dtype), b.astype(dtype), delta, c_bar, reachable
 
 
+def state_residuals(lmdp, solution):
+    """Per-state residual of the first-exit equation, relative to the state's own z:
+    ``|y_i - (A y + b)_i| / max(|y_i|, tiny)`` in the rescaled variables (= |z - QPz|_i / z_i),
+    max over channels; 0 for states that cannot reach a light (their z = 0 is exact)."""
+    S, q, b, _, _, reachable = rescaled_system(lmdp)
+    y = solution.y
+    r = np.abs(y - (_apply(S, q, y) + b))
+    rel = r / np.maximum(np.abs(y), 1e-300)
+    return np.where(reachable, rel.max(axis=1), 0.0)
+
+
 def _apply(S, q, y):
     return q * (S @ y)
 
