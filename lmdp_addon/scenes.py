@@ -394,7 +394,7 @@ def _narrow_opening_parts():
     lz = h - 0.005
     x0, x1, y0, y1 = 0.3, 0.55, -0.125, 0.125
     parts.append(_quad_part("Light", [(x0, y0, lz), (x0, y1, lz), (x1, y1, lz), (x1, y0, lz)],
-                            emission=(60.0, 54.0, 44.0)))
+                            emission=(120.0, 108.0, 88.0)))
     return parts
 
 
