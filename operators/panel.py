@@ -157,7 +157,9 @@ class LMDP_PT_solve(_LMDPSection, bpy.types.Panel):
         row.active = props.cost_mode == 'THESIS'
         row.prop(props, "lambda_scale")
         layout.prop(props, "solver")
-        layout.prop(props, "tolerance")
+        row = layout.row(align=True)
+        row.prop(props, "tolerance")
+        row.label(text=f"{props.tolerance:.1e}")  # the field shows 6 decimals: 1e-8 reads 0.000000
         row = layout.row()
         row.active = props.solver != 'DIRECT'
         row.prop(props, "max_iterations")
