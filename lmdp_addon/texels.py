@@ -21,8 +21,9 @@ R x R pixels onto a mesh as follows, and this module reproduces it exactly:
   (which copies pixels across UV seams) is not reproduced: bake with ``margin_type='EXTEND'``
   when comparing images including their margins.
 
-Everything is vectorised over texels; triangles are expanded over their pixel bounding boxes in
-chunks, so 200k small triangles cost a few numpy passes.
+Everything is vectorised over texels: (triangle, pixel) candidates from the triangles' pixel
+bounding boxes are tested in chunks of bounded size, so 200k small triangles or one huge one
+cost a few numpy passes.
 """
 from dataclasses import dataclass
 
@@ -172,24 +173,16 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
 
     rows, cols, tris, barys = [], [], [], []
     starts = np.concatenate([[0], np.cumsum(count)])
-    # Chunk over triangles so at most ~max_candidates pixel candidates live at once.
-    boundaries = np.searchsorted(starts, np.arange(0, starts[-1] + max_candidates, max_candidates))
-    boundaries = np.unique(np.clip(np.concatenate([boundaries, [T]]), 0, T))
-    lo = 0
-    for hi in boundaries:
-        if hi <= lo:
-            continue
-        tri = np.arange(lo, hi)
-        n_per = count[lo:hi]
-        total = int(n_per.sum())
-        lo = hi
-        if total == 0:
-            continue
-        t_idx = np.repeat(tri, n_per)
-        k = np.arange(total) - np.repeat(starts[tri] - starts[tri[0]], n_per)
+    total = int(starts[-1])
+    # Candidates (triangle, pixel of its bounding box) in chunks of at most max_candidates, so
+    # memory stays bounded whatever the triangle sizes.
+    for k0 in range(0, total, int(max_candidates)):
+        k = np.arange(k0, min(k0 + int(max_candidates), total))
+        t_idx = np.searchsorted(starts, k, side="right") - 1
+        local = k - starts[t_idx]
         w = width[t_idx]
-        px = x0[t_idx] + (k % w)
-        py = y0[t_idx] + (k // w)
+        px = x0[t_idx] + (local % w)
+        py = y0[t_idx] + (local // w)
         ef = e_from[t_idx]
         ed = e_to[t_idx] - ef
         # cross(edge, point - from) for the 3 edges: (m, 3)
@@ -201,7 +194,7 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
         e = e[inside]
         rows.append(py[inside].astype(np.int32))
         cols.append(px[inside].astype(np.int32))
-        tris.append(t_idx[inside])
+        tris.append(t_idx[inside].astype(np.int64))
         barys.append(e / e.sum(axis=1, keepdims=True))
 
     if rows:
