@@ -31,6 +31,8 @@ DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
 GEOMETRY_TYPES = {'MESH', 'CURVE', 'CURVES', 'SURFACE', 'META', 'FONT'}
 
 _BLACK = np.zeros(3)
+#: Before Blender 5.0 materials and worlds could switch their node trees off (``use_nodes``).
+_NODES_OPTIONAL = bpy.app.version < (5, 0, 0)
 
 
 def _srgb_to_linear(c):
@@ -188,7 +190,8 @@ class _MaterialReader:
             owner = f"Material '{mat.name}'"
             tree = mat.node_tree
             output = tree.get_output_node('CYCLES') if tree is not None else None
-            if tree is None:
+            if tree is None or (_NODES_OPTIONAL and not mat.use_nodes):
+                # Blender < 5.0 without nodes: Cycles shades the viewport colour as a Diffuse BSDF.
                 albedo, emission = np.array(mat.diffuse_color[:3], dtype=np.float64), _BLACK
             elif output is None or self._source(output.inputs["Surface"]) is None:
                 self.warn(f"{owner} has no shader connected to a Material Output: Cycles renders "
@@ -207,7 +210,7 @@ class _MaterialReader:
             return _BLACK
         owner = f"World '{world.name}'"
         tree = world.node_tree
-        if tree is None:
+        if tree is None or (_NODES_OPTIONAL and not world.use_nodes):
             return np.array(world.color[:3], dtype=np.float64)
         output = tree.get_output_node('CYCLES')
         if output is None:
