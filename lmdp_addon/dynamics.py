@@ -25,7 +25,9 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .errors import BudgetError
-from .hemisphere import square_to_hemisphere, stratum_square_samples
+from .hemisphere import (square_to_hemisphere, stratum_of_local_direction, stratum_square_samples,
+                         world_to_local)
+from .lights import EmitterSampler, connection
 from .raycast import RayCaster, offset_origins
 from .states import GOLDEN
 
@@ -95,7 +97,8 @@ class PassiveDynamics:
 
     @property
     def row_sum_error(self):
-        """Largest deviation of a row sum of P from 1 (float32 rounding only)."""
+        """Largest deviation of a row sum of P from 1 (float32 rounding without next-event
+        estimation; Monte Carlo noise of the emitter terms with it)."""
         return float(np.abs(np.asarray(self.P.sum(axis=1)).ravel() - 1.0).max()) if self.n_points else 0.0
 
     def memory_bytes(self):
@@ -105,8 +108,9 @@ class PassiveDynamics:
     def summary(self):
         c = self.counts
         total = max(sum(c.get(k, 0) for k in ("points", "emitters", "world", "void")), 1)
+        nee = (f" + {c['nee_rays']} shadow rays to the emitters" if c.get("nee_rays") else "")
         return (f"{self.n_points} x {self.n_columns} passive dynamics, nnz {self.P.nnz} "
-                f"({self.stratum_transitions.nnz} per stratum), {self.rays} rays: "
+                f"({self.stratum_transitions.nnz} per stratum), {self.rays} rays{nee}: "
                 f"{100 * c.get('points', 0) / total:.1f}% to states, "
                 f"{100 * c.get('emitters', 0) / total:.1f}% to emitters, "
                 f"{100 * c.get('world', 0) / total:.1f}% to the world, "
@@ -339,10 +343,23 @@ class HitClassifier:
 
 
 def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=None,
-                           memory_budget_gb=None, caster=None, exact_nearest=False):
+                           memory_budget_gb=None, caster=None, exact_nearest=False, light_samples=64):
     """Estimate the passive dynamics of every state by ray casting (thesis 3.1.2, eq. 3.1).
 
-    Returns a :class:`PassiveDynamics` whose rows sum to one (Lambertian BRDF·cos mass).
+    With ``light_samples = K > 0`` the transitions into emitter terminals are also estimated by
+    next-event estimation: K stratified points on the emitters per state point, one shadow ray
+    each, filed under the stratum that contains its direction. The two estimates are combined
+    with multiple importance sampling (balance heuristic): a sample in direction ω towards an
+    emitter carries
+
+        (cos θ / π) / (K p_light(ω) + R cos θ / (π w_k)),
+
+    whether it is a shadow ray or a stratum ray (of stratum k) that hit the emitter, where
+    ``p_light(ω) = pdf_area · d² / cos θ_y`` is the light sampling density in solid angle and
+    ``R cos θ / (π w_k)`` the stratum rays' density. This is unbiased; rows sum to one in
+    expectation, small distant lights get the low variance of light sampling and surfaces
+    right next to a light the low variance of the stratum rays.
+    With K = 0 every row sums to exactly one.
     """
     t0 = time.perf_counter()
     R = int(rays_per_stratum)
@@ -356,8 +373,13 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
     n_cols = m + E + 2
     locator = StateLocator(scene, states, exact=exact_nearest)
     classifier = HitClassifier(scene, locator, m)
+    face_normals = locator.face_normals
     rng = np.random.default_rng([int(seed), 0x1DA7])
     patterns = DirectionPatterns(states.strata_u, states.strata_v, R, rng)
+    sampler = EmitterSampler(scene)
+    K = int(light_samples) if not sampler.empty else 0
+    points = states.points
+    normals = states.normals
     # Every ray leaves through the upper hemisphere of its point: offset along the normal.
     lifted = (states.points + caster.offset() * states.normals).astype(np.float32)
     frames = states.frames.astype(np.float32)
@@ -377,10 +399,39 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         col, c = classifier.classify(origins, dirs, tri, dist, bu, bv, workers=1)
         # Rays come ordered by (point, stratum): each CSR row has exactly R entries.
         n_rows = len(ids) * S
-        block = sp.csr_matrix((np.tile(weights_per_row, len(ids)), col.astype(np.int32),
+        weights = np.tile(weights_per_row, len(ids))
+        if K:  # MIS weight of the stratum rays that hit an emitter (docstring)
+            hit_light = np.flatnonzero((col >= m) & (col < m + E))
+            cos_x = patterns.local[ids % patterns.pool][..., 2].reshape(-1)[hit_light].astype(np.float64)
+            cos_y = np.abs(np.einsum("ij,ij->i", face_normals[tri[hit_light]], dirs[hit_light]))
+            w_k = states.stratum_weight[np.tile(patterns.ray_stratum, len(ids))[hit_light]]
+            p_light = dist[hit_light].astype(np.float64) ** 2 / (np.maximum(cos_y, 1e-12) * sampler.total_area)
+            weights[hit_light] = (cos_x / np.pi) / (K * p_light + R * cos_x / (np.pi * w_k))
+        block = sp.csr_matrix((weights, col.astype(np.int32),
                                np.arange(0, n_rows * R + 1, R, dtype=np.int64)), shape=(n_rows, n_cols))
+        if K:
+            block = block + _emitter_block(ids, start, n_rows, n_cols)
+            c["nee_rays"] = len(ids) * K
         block.sum_duplicates()
         return block, c, tb - ta, time.perf_counter() - tb
+
+    def _emitter_block(ids, start, n_rows, n_cols):
+        """Next-event estimates of p(emitter | point, stratum) for a batch of points."""
+        batch_rng = np.random.default_rng([int(seed), 0x11E, int(start)])
+        owner = np.repeat(ids, K)
+        sample = sampler.stratified(len(ids), K, batch_rng)
+        omega, dist, cos_x, G = connection(points[owner], normals[owner], sample)
+        live = np.flatnonzero(G > 0)
+        eps = caster.offset()
+        blocked = caster.occluded(lifted[owner[live]], omega[live], np.maximum(dist[live] * (1 - 1e-4) - 2 * eps, 0.0))
+        live = live[~blocked]
+        local = world_to_local(omega[live], states.frames[owner[live]])
+        k = np.maximum(stratum_of_local_direction(local, states.strata_u, states.strata_v), 0)
+        cx = cos_x[live]
+        p_light = sample.pdf_area[live] * cx / G[live]          # pdf_area d² / cos θ_y
+        weight = (cx / np.pi) / (K * p_light + R * cx / (np.pi * states.stratum_weight[k]))
+        rows = (owner[live] - start) * S + k
+        return sp.csr_matrix((weight.astype(np.float32), (rows, m + sample.emitter[live])), shape=(n_rows, n_cols))
 
     # Batches run on a small thread pool: embree and numpy release the GIL, so tracing one
     # batch overlaps with binning another.
@@ -411,6 +462,7 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
                                np.arange(0, m * S + 1, S)), shape=(m, m * S))
     P = _compact(aggregate @ stratum_transitions)
     counts["rays"] = m * S * R
+    counts["light_samples_per_point"] = K
     return PassiveDynamics(
         stratum_transitions=stratum_transitions,
         P=P,

@@ -60,7 +60,8 @@ def run_build(scene, states, settings, progress=None):
     check_budget(states.n_points, states.n_strata, settings.rays_per_stratum, settings.memory_budget_gb)
     progress.begin("build")
     dynamics = build_passive_dynamics(scene, states, settings.rays_per_stratum, seed=settings.seed,
-                                      progress=progress, memory_budget_gb=settings.memory_budget_gb)
+                                      progress=progress, memory_budget_gb=settings.memory_budget_gb,
+                                      light_samples=settings.light_samples)
     seconds = progress.end(dynamics.summary())
     return dynamics, seconds
 

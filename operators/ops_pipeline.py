@@ -83,7 +83,8 @@ class LMDP_OT_build_dynamics(EngineJob, bpy.types.Operator):
     def compute(self, inputs, settings, progress):
         scene, states = inputs
         return build_passive_dynamics(scene, states, settings.rays_per_stratum, seed=settings.seed,
-                                      progress=progress, memory_budget_gb=settings.memory_budget_gb)
+                                      progress=progress, memory_budget_gb=settings.memory_budget_gb,
+                                      light_samples=settings.light_samples)
 
     def apply(self, context, dynamics):
         session = session_for(context.scene)

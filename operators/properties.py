@@ -87,6 +87,13 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
                     "passive dynamics P (rays). More rays: less noise in P, longer build",
         default=_DEFAULTS.rays_per_stratum, min=1, max=4096, soft_max=64,
     )
+    light_samples: IntProperty(
+        name="Light Samples",
+        description="Shadow rays per point towards the emitters (next-event estimation of the "
+                    "transitions into emitter states, rays). 0: only the stratum rays find the "
+                    "lights (noisy for small lights)",
+        default=_DEFAULTS.light_samples, min=0, max=65536, soft_max=1024,
+    )
     epsilon: FloatProperty(
         name="Self-loop Epsilon",
         description="Self-loop probability added to every row of P in THESIS mode (thesis eq. "

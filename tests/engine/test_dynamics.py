@@ -13,9 +13,10 @@ from lmdp_addon.states import sample_states
 
 @pytest.fixture(scope="module")
 def cornell():
+    """Stratum rays only (no light samples): every row sums to exactly one."""
     scene = build_scene_arrays("CORNELL_BOX")
     states = sample_states(scene, 1500, 4, 4, seed=3)
-    return scene, states, build_passive_dynamics(scene, states, 4, seed=3)
+    return scene, states, build_passive_dynamics(scene, states, 4, seed=3, light_samples=0)
 
 
 def test_rows_are_stochastic_and_strata_carry_their_cosine_mass(cornell):
@@ -48,10 +49,13 @@ def test_ray_directions_follow_brdf_cos_within_each_stratum():
 
 def test_deterministic_for_a_seed(cornell):
     scene, states, dyn = cornell
-    again = build_passive_dynamics(scene, states, 4, seed=3)
+    again = build_passive_dynamics(scene, states, 4, seed=3, light_samples=0)
     assert (abs(again.P - dyn.P)).max() == 0
-    other = build_passive_dynamics(scene, states, 4, seed=4)
+    other = build_passive_dynamics(scene, states, 4, seed=4, light_samples=0)
     assert (abs(other.P - dyn.P)).max() > 0
+    a = build_passive_dynamics(scene, states, 4, seed=3, light_samples=16)
+    b = build_passive_dynamics(scene, states, 4, seed=3, light_samples=16)
+    assert (abs(a.P - b.P)).max() == 0
 
 
 def test_grid_lookup_is_the_nearest_point_to_within_a_cell(cornell):
@@ -141,7 +145,7 @@ def test_form_factor_to_a_parallel_square_matches_the_analytic_value():
     scene = build_scene_arrays("PARALLEL_SQUARES")
     R = 16
     states = sample_states(scene, 600, 4, 4, seed=5)
-    dyn = build_passive_dynamics(scene, states, R, seed=5)
+    dyn = build_passive_dynamics(scene, states, R, seed=5, light_samples=0)
     p = PARALLEL_SQUARES
     F = point_to_parallel_square_form_factor(p["emitter_side"], p["height"], offset=-states.points[:, :2])
     est = dyn.P[:, states.n_points].toarray().ravel()
@@ -156,7 +160,7 @@ def test_form_factor_at_the_centre_with_fine_strata():
     states = sample_states(scene, 1, 8, 8, seed=0)
     states.points[0] = [0.0, 0.0, 0.0]
     R = 256
-    dyn = build_passive_dynamics(scene, states, R, seed=0)
+    dyn = build_passive_dynamics(scene, states, R, seed=0, light_samples=0)
     p = PARALLEL_SQUARES
     F = point_to_parallel_square_form_factor(p["emitter_side"], p["height"])
     sigma = np.sqrt(np.sum(states.stratum_weight ** 2) / (4 * R))
@@ -170,3 +174,35 @@ def test_memory_budget_is_checked_before_any_work():
     need = estimate_build_bytes(1000, 16, 4)
     with pytest.raises(BudgetError, match=r"GiB.*budget"):
         build_passive_dynamics(scene, states, 4, memory_budget_gb=need / 2 / 1024 ** 3)
+
+
+def test_light_samples_keep_the_form_factor_unbiased_and_cut_its_variance():
+    """Next-event estimation + MIS (light_samples > 0): per point, the spread over independent
+    seeds gives σ̂; the mean over seeds and points must match F within 5 σ̂ / sqrt(n), and the
+    error must be well below the stratum-rays-only estimator's at the same ray count."""
+    scene = build_scene_arrays("PARALLEL_SQUARES", selected=["Receiver"])
+    states = sample_states(scene, 300, 4, 4, seed=5)
+    p = PARALLEL_SQUARES
+    F = point_to_parallel_square_form_factor(p["emitter_side"], p["height"], offset=-states.points[:, :2])
+    runs = np.array([build_passive_dynamics(scene, states, 4, seed=s, light_samples=64).P[:, 300].toarray().ravel()
+                     for s in range(8)])
+    sigma = runs.std(axis=0, ddof=1)
+    err = runs.mean(axis=0) - F
+    assert abs(err.mean()) < 5 * np.sqrt(np.mean(sigma ** 2) / (runs.size))
+    # Per point, t = err / (σ̂/√8) follows Student's t with 7 degrees of freedom if unbiased:
+    # E[t²] = 7/5, Var[t²] = 7.84, so the mean of t² over n points is 1.4 ± 2.8/√n.
+    t = err / (sigma / np.sqrt(len(runs)))
+    assert np.mean(t ** 2) < 1.4 + 5 * 2.8 / np.sqrt(len(t))
+    brdf_only = build_passive_dynamics(scene, states, 4, seed=0, light_samples=0).P[:, 300].toarray().ravel()
+    assert np.sqrt(np.mean((runs[0] - F) ** 2)) < 0.5 * np.sqrt(np.mean((brdf_only - F) ** 2))
+
+
+def test_light_samples_keep_rows_unbiased_next_to_a_light():
+    """The Cornell ceiling touches the (two-sided) light: MIS keeps every row near one."""
+    scene = build_scene_arrays("CORNELL_BOX")
+    states = sample_states(scene, 1500, 4, 4, seed=3)
+    dyn = build_passive_dynamics(scene, states, 4, seed=3, light_samples=64)
+    sums = np.asarray(dyn.P.sum(axis=1)).ravel()
+    assert abs(sums.mean() - 1) < 5 * sums.std() / np.sqrt(len(sums))
+    assert dyn.row_sum_error < 0.25
+    assert dyn.counts["nee_rays"] == 1500 * 64

@@ -1,0 +1,100 @@
+"""Emitters as area lights: stratified sampling of points on emissive triangles and the
+geometry term of a connection (next-event estimation), shared by the dynamics and the tracer.
+
+A connection from a receiver x (normal n_x) to an emitter point y (normal n_y) carries
+
+    G(x, y) = cos θ_x · cos θ_y / |y - x|^2,     cos θ_x = n_x · ω,   cos θ_y = -n_y · ω (front),
+
+with ω the unit direction from x to y. Mesh emission is two-sided (Cycles), so there
+``cos θ_y = |n_y · ω|``; one-sided emitters (area lights) emit only along +n_y.
+With y drawn with area density ``pdf_area``, ``G V / (π pdf_area)`` is an unbiased estimate of
+the form factor from x to the emitters (the Lambertian transition mass towards them) and
+``L_e G V / pdf_area`` one of the irradiance they cause.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from .states import GOLDEN
+
+
+@dataclass
+class EmitterSample:
+    """Points on emitters: ``position (n, 3)``, ``normal (n, 3)``, ``triangle (n,)``,
+    ``emitter (n,)`` (emitter group), ``radiance (n, 3)``, ``two_sided (n,)``, ``pdf_area (n,)``."""
+
+    position: np.ndarray
+    normal: np.ndarray
+    triangle: np.ndarray
+    emitter: np.ndarray
+    radiance: np.ndarray
+    two_sided: np.ndarray
+    pdf_area: np.ndarray
+
+
+class EmitterSampler:
+    """Samples points on all emissive triangles of a scene proportionally to area."""
+
+    def __init__(self, scene):
+        self.scene = scene
+        tri_emitter, self.emitter_radiance = scene.emitter_groups()
+        normals, areas = scene.triangle_geometry()
+        self.triangles = np.flatnonzero(tri_emitter >= 0)
+        self.emitter_of_triangle = tri_emitter[self.triangles]
+        self.areas = areas[self.triangles]
+        self.total_area = float(self.areas.sum())
+        self.cdf = np.cumsum(self.areas)
+        self.normals = normals[self.triangles]
+        self.corners = scene.corners()[self.triangles]
+        self.radiance = scene.triangle_emission[self.triangles].astype(np.float64)
+        self.two_sided = scene.triangle_emission_two_sided[self.triangles]
+
+    @property
+    def empty(self):
+        return len(self.triangles) == 0 or self.total_area <= 0
+
+    def sample(self, u1, u2):
+        """Map uniform ``u1, u2 (n,)`` to emitter points (area-proportional, area preserving)."""
+        x = np.asarray(u1, dtype=np.float64) * self.total_area
+        k = np.minimum(np.searchsorted(self.cdf, x, side="right"), len(self.triangles) - 1)
+        start = self.cdf[k] - self.areas[k]
+        r1 = np.clip((x - start) / self.areas[k], 0.0, 1.0)
+        s = np.sqrt(r1)
+        b1, b2 = s * (1.0 - np.asarray(u2)), s * np.asarray(u2)
+        c = self.corners[k]
+        pos = c[:, 0] + b1[:, None] * (c[:, 1] - c[:, 0]) + b2[:, None] * (c[:, 2] - c[:, 0])
+        return EmitterSample(position=pos, normal=self.normals[k], triangle=self.triangles[k],
+                             emitter=self.emitter_of_triangle[k], radiance=self.radiance[k],
+                             two_sided=self.two_sided[k],
+                             pdf_area=np.full(len(k), 1.0 / self.total_area))
+
+    def stratified(self, n_receivers, per_receiver, rng):
+        """``per_receiver`` stratified samples for each of ``n_receivers``, receiver-major.
+
+        Receiver i's samples take ``u1 = (j + ξ_i)/K`` (one per 1/K of the emitter area, in the
+        area-CDF order) and ``u2 = frac(j/φ + ξ'_i)``, a randomly shifted rank-1 lattice.
+        """
+        K = int(per_receiver)
+        j = np.tile(np.arange(K, dtype=np.float64), n_receivers)
+        shift = rng.random((n_receivers, 2)).repeat(K, axis=0)
+        u1 = (j + shift[:, 0]) / K
+        u2 = np.mod(j * GOLDEN + shift[:, 1], 1.0)
+        return self.sample(u1, u2)
+
+
+def connection(points, normals, sample):
+    """Unit directions, distances and the geometry term G of receiver -> emitter connections.
+
+    Returns ``(omega (n, 3), distance (n,), cos_receiver (n,), G (n,))``; G is 0 where the
+    emitter point is below the receiver's horizon or the receiver sees the back of a one-sided
+    emitter.
+    """
+    d = sample.position - points
+    dist2 = np.einsum("ij,ij->i", d, d)
+    dist = np.sqrt(np.maximum(dist2, 1e-300))
+    omega = d / dist[:, None]
+    cos_x = np.einsum("ij,ij->i", normals, omega)
+    cos_y_signed = -np.einsum("ij,ij->i", sample.normal, omega)
+    cos_y = np.where(sample.two_sided, np.abs(cos_y_signed), np.maximum(cos_y_signed, 0.0))
+    G = np.where(cos_x > 0, cos_x * cos_y / np.maximum(dist2, 1e-300), 0.0)
+    return omega, dist, cos_x, G
