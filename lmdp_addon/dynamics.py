@@ -343,7 +343,7 @@ class HitClassifier:
 
 
 def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=None,
-                           memory_budget_gb=None, caster=None, exact_nearest=False, light_samples=64):
+                           memory_budget_gb=None, caster=None, exact_nearest=False, light_samples=32):
     """Estimate the passive dynamics of every state by ray casting (thesis 3.1.2, eq. 3.1).
 
     With ``light_samples = K > 0`` the transitions into emitter terminals are also estimated by
@@ -428,10 +428,11 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         local = world_to_local(omega[live], states.frames[owner[live]])
         k = np.maximum(stratum_of_local_direction(local, states.strata_u, states.strata_v), 0)
         cx = cos_x[live]
-        p_light = sample.pdf_area[live] * cx / G[live]          # pdf_area d² / cos θ_y
+        p_light = sample.pdf_area * cx / G[live]          # pdf_area d² / cos θ_y
         weight = (cx / np.pi) / (K * p_light + R * cx / (np.pi * states.stratum_weight[k]))
         rows = (owner[live] - start) * S + k
-        return sp.csr_matrix((weight.astype(np.float32), (rows, m + sample.emitter[live])), shape=(n_rows, n_cols))
+        cols = m + sampler.emitter_of_triangle[sample.triangle_index[live]]
+        return sp.csr_matrix((weight.astype(np.float32), (rows, cols)), shape=(n_rows, n_cols))
 
     # Batches run on a small thread pool: embree and numpy release the GIL, so tracing one
     # batch overlaps with binning another.

@@ -20,16 +20,34 @@ from .states import GOLDEN
 
 @dataclass
 class EmitterSample:
-    """Points on emitters: ``position (n, 3)``, ``normal (n, 3)``, ``triangle (n,)``,
-    ``emitter (n,)`` (emitter group), ``radiance (n, 3)``, ``two_sided (n,)``, ``pdf_area (n,)``."""
+    """Points on emitters: ``position (n, 3)`` and, gathered on demand, ``normal (n, 3)``,
+    ``triangle (n,)`` (scene triangle), ``emitter (n,)`` (emitter group), ``radiance (n, 3)``,
+    ``two_sided (n,)``; ``pdf_area`` is the (uniform) area density, 1 / total emitter area."""
 
     position: np.ndarray
-    normal: np.ndarray
-    triangle: np.ndarray
-    emitter: np.ndarray
-    radiance: np.ndarray
-    two_sided: np.ndarray
-    pdf_area: np.ndarray
+    triangle_index: np.ndarray
+    sampler: "EmitterSampler"
+    pdf_area: float
+
+    @property
+    def normal(self):
+        return self.sampler.normals[self.triangle_index]
+
+    @property
+    def triangle(self):
+        return self.sampler.triangles[self.triangle_index]
+
+    @property
+    def emitter(self):
+        return self.sampler.emitter_of_triangle[self.triangle_index]
+
+    @property
+    def radiance(self):
+        return self.sampler.radiance[self.triangle_index]
+
+    @property
+    def two_sided(self):
+        return self.sampler.two_sided[self.triangle_index]
 
 
 class EmitterSampler:
@@ -45,7 +63,10 @@ class EmitterSampler:
         self.total_area = float(self.areas.sum())
         self.cdf = np.cumsum(self.areas)
         self.normals = normals[self.triangles]
-        self.corners = scene.corners()[self.triangles]
+        corners = scene.corners()[self.triangles]
+        self.v0 = corners[:, 0].copy()
+        self.e1 = corners[:, 1] - corners[:, 0]
+        self.e2 = corners[:, 2] - corners[:, 0]
         self.radiance = scene.triangle_emission[self.triangles].astype(np.float64)
         self.two_sided = scene.triangle_emission_two_sided[self.triangles]
 
@@ -61,12 +82,12 @@ class EmitterSampler:
         r1 = np.clip((x - start) / self.areas[k], 0.0, 1.0)
         s = np.sqrt(r1)
         b1, b2 = s * (1.0 - np.asarray(u2)), s * np.asarray(u2)
-        c = self.corners[k]
-        pos = c[:, 0] + b1[:, None] * (c[:, 1] - c[:, 0]) + b2[:, None] * (c[:, 2] - c[:, 0])
-        return EmitterSample(position=pos, normal=self.normals[k], triangle=self.triangles[k],
-                             emitter=self.emitter_of_triangle[k], radiance=self.radiance[k],
-                             two_sided=self.two_sided[k],
-                             pdf_area=np.full(len(k), 1.0 / self.total_area))
+        if len(self.triangles) == 1:  # the common single-quad light: no gathers
+            pos = self.v0[0] + b1[:, None] * self.e1[0] + b2[:, None] * self.e2[0]
+        else:
+            pos = self.v0[k] + b1[:, None] * self.e1[k] + b2[:, None] * self.e2[k]
+        return EmitterSample(position=pos, triangle_index=k, sampler=self,
+                             pdf_area=1.0 / self.total_area)
 
     def stratified(self, n_receivers, per_receiver, rng):
         """``per_receiver`` stratified samples for each of ``n_receivers``, receiver-major.
@@ -94,7 +115,13 @@ def connection(points, normals, sample):
     dist = np.sqrt(np.maximum(dist2, 1e-300))
     omega = d / dist[:, None]
     cos_x = np.einsum("ij,ij->i", normals, omega)
-    cos_y_signed = -np.einsum("ij,ij->i", sample.normal, omega)
-    cos_y = np.where(sample.two_sided, np.abs(cos_y_signed), np.maximum(cos_y_signed, 0.0))
+    sampler = sample.sampler
+    if len(sampler.triangles) == 1:
+        cos_y_signed = -(omega @ sampler.normals[0])
+        two_sided = bool(sampler.two_sided[0])
+    else:
+        cos_y_signed = -np.einsum("ij,ij->i", sample.normal, omega)
+        two_sided = sample.two_sided
+    cos_y = np.where(two_sided, np.abs(cos_y_signed), np.maximum(cos_y_signed, 0.0))
     G = np.where(cos_x > 0, cos_x * cos_y / np.maximum(dist2, 1e-300), 0.0)
     return omega, dist, cos_x, G

@@ -18,7 +18,7 @@ class Settings:
     strata_v: int = 4                 #: hemisphere strata along v
     # Passive dynamics (thesis 3.1.2)
     rays_per_stratum: int = 4         #: jittered rays cast through each stratum of each point
-    light_samples: int = 64           #: shadow rays per point to the emitters (next-event estimation)
+    light_samples: int = 32           #: shadow rays per point to the emitters (next-event estimation)
     epsilon: float = 5e-5             #: self-loop probability of eq. 3.1 (THESIS mode)
     # State costs (thesis 3.1.3)
     cost_mode: str = "PHYSICAL"       #: 'THESIS' (g = 1, Q = exp(-λ g)) or 'PHYSICAL' (Q = albedo)
