@@ -1,0 +1,322 @@
+"""Arrow geometry of the optimal policy u* (thesis eq. 2.23 / 3.2; Figure 5), without bpy.
+
+The directional optimal policy ``u*(k | x)`` (:func:`lmdp_addon.policy.stratum_policy`) is the
+probability that the optimal controller sends a path leaving point x through hemisphere stratum
+k. It is drawn as one arrow per (point, stratum) along the stratum's central direction, with
+length ``scale x u*(k|x)``: a point whose policy follows the passive dynamics shows a cosine-shaped
+bouquet, a point whose policy has learnt where the light is shows one or two long arrows.
+
+This module computes everything that is geometry, vectorised over arrows:
+
+* which points get arrows: :func:`policy_divergence` (KL(u* || p), the control cost of the state,
+  thesis eq. 2.21), :func:`most_informative` (largest divergence, spread over space),
+  :func:`even_subset`;
+* the arrows: :func:`stratum_arrows`, and for the probe, :func:`nearest_state` and
+  :func:`next_state_targets` (the thesis's Figure 5: u*(x'|x) over the next states x');
+* their shapes: :func:`arrow_lines` (line segments for the viewport's GPU batch),
+  :func:`arrow_mesh` (closed triangle meshes that render in Cycles / EEVEE) and
+  :func:`marker_mesh` (octahedra at next states).
+
+Arrays: ``points (m, 3)`` world metres, ``frames (m, 3, 3)`` rows t, b, n
+(:func:`lmdp_addon.hemisphere.tangent_frame`), ``u (m, S)`` rows summing to one.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from .hemisphere import stratum_centers, tangent_frame
+
+
+@dataclass
+class Arrows:
+    """N arrows: ``start + length * direction``.
+
+    starts      (N, 3) world metres
+    directions  (N, 3) unit vectors
+    lengths     (N,) metres
+    probability (N,) the probability each arrow stands for (u*(k|x) or u*(x'|x))
+    point       (N,) int64 state (point) index the arrow leaves from
+    stratum     (N,) int64 stratum index (-1 for arrows to next states)
+    """
+
+    starts: np.ndarray
+    directions: np.ndarray
+    lengths: np.ndarray
+    probability: np.ndarray
+    point: np.ndarray
+    stratum: np.ndarray
+
+    @property
+    def count(self):
+        return len(self.lengths)
+
+    @property
+    def ends(self):
+        return self.starts + self.directions * self.lengths[:, None]
+
+    @classmethod
+    def empty(cls):
+        return cls(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0),
+                   np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+    @classmethod
+    def concatenate(cls, parts):
+        parts = [p for p in parts if p is not None]
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                     ("starts", "directions", "lengths", "probability", "point", "stratum")))
+
+
+# -- which points ---------------------------------------------------------------------------------
+
+def policy_divergence(u, passive):
+    """KL(u*(.|x) || p(.|x)) over the strata of each point, nats (m,).
+
+    ``passive (S,) or (m, S)``: the passive dynamics' stratum probabilities (the Lambertian
+    masses ``StateSpace.stratum_weight``). This is the control cost the optimal policy pays at x
+    (thesis eq. 2.21 without λ): 0 where u* follows the passive dynamics, large where it has
+    learnt to aim.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    p = np.broadcast_to(np.asarray(passive, dtype=np.float64), u.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(u > 0, u * np.log(u / np.where(p > 0, p, 1e-300)), 0.0)
+    return terms.sum(axis=1)
+
+
+def policy_entropy(u):
+    """Shannon entropy of u*(.|x) over the strata of each point, nats (m,)."""
+    u = np.asarray(u, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return -np.where(u > 0, u * np.log(np.where(u > 0, u, 1.0)), 0.0).sum(axis=1)
+
+
+def most_informative(points, score, count, cell_size=None, candidates=None):
+    """Indices of up to ``count`` points with the largest ``score``, spread over space.
+
+    Points are binned into cubes of side ``cell_size`` (default: the side that gives about
+    ``count`` occupied cells on the bounding box's surface area scale, see below); each cell
+    keeps its best point, and the best ``count`` cells win. Without the spreading every arrow
+    would crowd around the light, where the policy is sharpest. ``candidates``: restrict to these
+    point indices. Returned in decreasing score.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    score = np.asarray(score, dtype=np.float64).reshape(-1)
+    idx = np.arange(len(points)) if candidates is None else np.asarray(candidates, dtype=np.int64)
+    count = int(count)
+    if count <= 0 or idx.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if idx.size <= count:
+        return idx[np.argsort(-score[idx], kind="stable")]
+    p = points[idx]
+    if cell_size is None:
+        # Points lie on surfaces: about (extent² x 6) / cell² cells are occupied; ask for ~2 count.
+        extent = np.ptp(p, axis=0)
+        area = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[0] * extent[2])
+        cell_size = np.sqrt(max(area, 1e-12) / (2.0 * count))
+    cell = np.floor((p - p.min(axis=0)) / max(float(cell_size), 1e-12)).astype(np.int64)
+    _, cell_id = np.unique(cell, axis=0, return_inverse=True)
+    cell_id = cell_id.reshape(-1)
+    # Best point per cell: sort by (cell, -score) and take the first of each cell.
+    order = np.lexsort((-score[idx], cell_id))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = cell_id[order][1:] != cell_id[order][:-1]
+    best = order[first]
+    best = best[np.argsort(-score[idx][best], kind="stable")][:count]
+    if len(best) < count:  # fewer cells than wanted: fill with the next best points
+        rest = np.setdiff1d(np.arange(len(idx)), best)
+        rest = rest[np.argsort(-score[idx][rest], kind="stable")][:count - len(best)]
+        best = np.concatenate([best, rest])
+    return idx[best]
+
+
+def even_subset(indices, count):
+    """Up to ``count`` of ``indices`` at even strides (states are stratified along the area CDF,
+    so even strides are even over the surface)."""
+    indices = np.asarray(indices, dtype=np.int64)
+    if len(indices) <= count:
+        return indices
+    pick = np.floor((np.arange(count) + 0.5) * len(indices) / count).astype(np.int64)
+    return indices[pick]
+
+
+# -- the arrows -----------------------------------------------------------------------------------
+
+def stratum_directions(frames, strata_u, strata_v):
+    """(m, S, 3) world central direction of every stratum of every point."""
+    centers = stratum_centers(strata_u, strata_v)  # (S, 3) local
+    return np.einsum("sj,mjk->msk", centers, np.asarray(frames, dtype=np.float64))
+
+
+def stratum_arrows(points, frames, u, strata_u, strata_v, scale, min_probability=0.0, lift=0.0):
+    """One arrow per (point, stratum) with ``u*(k|x) > min_probability``.
+
+    The arrow leaves ``point + lift * normal`` (a small lift keeps it off the surface) along the
+    stratum's central direction with length ``scale * u*(k|x)`` (so ``scale`` is the length of a
+    probability-1 arrow, metres).
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    frames = np.asarray(frames, dtype=np.float64).reshape(-1, 3, 3)
+    u = np.asarray(u, dtype=np.float64).reshape(len(points), -1)
+    if u.shape[1] != strata_u * strata_v:
+        raise ValueError(f"u has {u.shape[1]} strata per point, expected {strata_u} x {strata_v}")
+    dirs = stratum_directions(frames, strata_u, strata_v)
+    keep = (u > min_probability) & (u > 0)
+    point, stratum = np.nonzero(keep)
+    starts = points[point] + float(lift) * frames[point, 2]
+    prob = u[point, stratum]
+    return Arrows(starts, dirs[point, stratum], float(scale) * prob, prob,
+                  point.astype(np.int64), stratum.astype(np.int64))
+
+
+def nearest_state(points, normals, location, candidates=None, side_tolerance=1e-4):
+    """Index of the state point nearest to ``location`` that has ``location`` on its front side.
+
+    A probe placed on a thin wall must read the states of the face it was placed on, not those of
+    the back face a few millimetres away: among the states with ``(location - p) · n >=
+    -side_tolerance`` the nearest wins; if there is none, the nearest of all. ``candidates``
+    restricts the search to those indices. Returns -1 when there are no states.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    idx = np.arange(len(points)) if candidates is None else np.asarray(candidates, dtype=np.int64)
+    if idx.size == 0:
+        return -1
+    offset = np.asarray(location, dtype=np.float64).reshape(3) - points[idx]
+    dist2 = np.einsum("ij,ij->i", offset, offset)
+    front = np.einsum("ij,ij->i", offset, normals[idx]) >= -float(side_tolerance)
+    if front.any():
+        dist2 = np.where(front, dist2, np.inf)
+    return int(idx[np.argmin(dist2)])
+
+
+def next_state_targets(policy_row_indices, policy_row_values, n_points, count=None):
+    """The next states x' of one state's u*(x'|x) that are surface points, largest first.
+
+    ``policy_row_*``: the CSR row of :func:`lmdp_addon.policy.optimal_policy` (column indices and
+    probabilities; columns >= n_points are terminals). Returns ``(points (K,), probability (K,),
+    terminal_probability)``: the surface next states (at most ``count``), and the total
+    probability of the terminal states (lights, world, void) which have no position.
+    """
+    cols = np.asarray(policy_row_indices, dtype=np.int64)
+    vals = np.asarray(policy_row_values, dtype=np.float64)
+    surface = (cols < n_points) & (vals > 0)
+    terminal = float(vals[cols >= n_points].sum())
+    cols, vals = cols[surface], vals[surface]
+    order = np.argsort(-vals, kind="stable")
+    if count is not None:
+        order = order[:int(count)]
+    return cols[order], vals[order], terminal
+
+
+def arrows_between(starts, ends, probability, point, shorten=0.0):
+    """Arrows from ``starts`` to ``ends`` (each shortened by ``shorten`` metres at the tip)."""
+    starts = np.asarray(starts, dtype=np.float64).reshape(-1, 3)
+    ends = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
+    d = ends - starts
+    length = np.linalg.norm(d, axis=1)
+    direction = np.where(length[:, None] > 0, d / np.where(length > 0, length, 1.0)[:, None], 0.0)
+    length = np.maximum(length - float(shorten), 0.0)
+    n = len(starts)
+    return Arrows(starts, direction, length, np.asarray(probability, dtype=np.float64).reshape(n),
+                  np.broadcast_to(np.asarray(point, dtype=np.int64), (n,)).copy(),
+                  np.full(n, -1, dtype=np.int64))
+
+
+# -- shapes ---------------------------------------------------------------------------------------
+
+def _perpendiculars(directions):
+    """Two unit vectors perpendicular to each direction and to each other: (N, 3), (N, 3)."""
+    frames = tangent_frame(directions)
+    return frames[:, 0], frames[:, 1]
+
+
+def arrow_lines(arrows, head_fraction=0.3, head_width=0.35):
+    """Line segments of the arrows for a 'LINES' GPU batch.
+
+    Each arrow is its shaft plus four barbs from the tip, ``head_fraction`` of its length long and
+    ``head_width`` of the head length wide, around the shaft (readable from every view).
+    Returns ``(vertices (10 N, 3) float32, arrow (10 N,) int64)``: consecutive pairs are segments.
+    """
+    n = arrows.count
+    if n == 0:
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+    tip = arrows.ends
+    d = arrows.directions
+    a, b = _perpendiculars(d)
+    head = (float(head_fraction) * arrows.lengths)[:, None]
+    back = tip - d * head
+    w = float(head_width) * head
+    barbs = [back + a * w, back - a * w, back + b * w, back - b * w]
+    segments = [arrows.starts, tip]
+    for barb in barbs:
+        segments += [tip, barb]
+    verts = np.stack(segments, axis=1).reshape(-1, 3)
+    return verts.astype(np.float32), np.repeat(np.arange(n), 10)
+
+
+def arrow_mesh(arrows, shaft_radius, head_radius=None, head_length=None, sides=6):
+    """Closed triangle meshes of the arrows: a ``sides``-gon prism shaft and a pyramid head
+    (joined by an annulus, so each arrow is a closed, outward-facing 2-manifold).
+
+    ``shaft_radius``: metres, scalar or (N,); ``head_radius`` defaults to 2.5 x the shaft radius
+    and ``head_length`` to min(6 x shaft radius, 0.45 x length): short arrows keep a visible head.
+    Returns ``(vertices (N*V, 3) float32, triangles (N*F, 3) int64, arrow (N*V,) int64)`` with
+    V = 3 sides + 1 and F = 6 sides - 2 triangles per arrow, outward-facing.
+    """
+    n = arrows.count
+    sides = int(sides)
+    if sides < 3:
+        raise ValueError("an arrow needs at least 3 sides")
+    per_v, per_f = 3 * sides + 1, 6 * sides - 2
+    if n == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    r = np.broadcast_to(np.asarray(shaft_radius, dtype=np.float64), (n,))
+    hr = 2.5 * r if head_radius is None else np.broadcast_to(np.asarray(head_radius, np.float64), (n,))
+    L = arrows.lengths
+    hl = np.minimum(6.0 * r, 0.45 * L) if head_length is None else \
+        np.minimum(np.broadcast_to(np.asarray(head_length, np.float64), (n,)), L)
+    d = arrows.directions
+    a, b = _perpendiculars(d)
+    angle = 2.0 * np.pi * np.arange(sides) / sides
+    ring = np.cos(angle)[None, :, None] * a[:, None, :] + np.sin(angle)[None, :, None] * b[:, None, :]
+    start = arrows.starts
+    neck = start + d * (L - hl)[:, None]
+    tip = start + d * L[:, None]
+    verts = np.concatenate([
+        start[:, None, :] + r[:, None, None] * ring,    # 0 .. s-1   shaft bottom ring
+        neck[:, None, :] + r[:, None, None] * ring,     # s .. 2s-1  shaft top ring
+        neck[:, None, :] + hr[:, None, None] * ring,    # 2s .. 3s-1 head base ring
+        tip[:, None, :],                                # 3s         tip
+    ], axis=1)
+    s = np.arange(sides)
+    s1 = (s + 1) % sides
+    faces = np.concatenate([
+        np.stack([s, s1, sides + s1], axis=1), np.stack([s, sides + s1, sides + s], axis=1),  # shaft
+        np.stack([np.zeros(sides - 2, int), np.arange(2, sides), np.arange(1, sides - 1)], axis=1),
+        np.stack([sides + s, sides + s1, 2 * sides + s1], axis=1),  # annulus under the head
+        np.stack([sides + s, 2 * sides + s1, 2 * sides + s], axis=1),
+        np.stack([2 * sides + s, 2 * sides + s1, np.full(sides, 3 * sides)], axis=1),  # head cone
+    ])
+    assert len(faces) == per_f
+    triangles = faces[None, :, :] + (np.arange(n) * per_v)[:, None, None]
+    return (verts.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.int64),
+            np.repeat(np.arange(n), per_v))
+
+
+def marker_mesh(centers, radii):
+    """Octahedra (6 vertices, 8 outward triangles each) at ``centers (K, 3)`` with ``radii``.
+
+    Returns ``(vertices (6K, 3) float32, triangles (8K, 3) int64, marker (6K,) int64)``.
+    """
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    k = len(centers)
+    r = np.broadcast_to(np.asarray(radii, dtype=np.float64), (k,))
+    axes = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    verts = centers[:, None, :] + r[:, None, None] * axes[None]
+    faces = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+                      [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    triangles = faces[None] + (np.arange(k) * 6)[:, None, None]
+    return (verts.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.int64),
+            np.repeat(np.arange(k), 6))

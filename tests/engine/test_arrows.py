@@ -1,0 +1,181 @@
+"""Arrow geometry of the optimal policy: which points, which arrows, lines and meshes."""
+import numpy as np
+import pytest
+
+from lmdp_addon import arrows as A
+from lmdp_addon.hemisphere import stratum_centers, stratum_cosine_weights, tangent_frame
+
+
+def frames_for(normals):
+    normals = np.asarray(normals, dtype=np.float64)
+    return tangent_frame(normals / np.linalg.norm(normals, axis=1, keepdims=True))
+
+
+def test_stratum_arrows_follow_the_strata_and_the_probabilities():
+    normals = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, -1.0, 0]])
+    frames = frames_for(normals)
+    points = np.array([[0, 0, 0], [1, 2, 3], [-1, 0, 0.5]], float)
+    rng = np.random.default_rng(0)
+    u = rng.random((3, 16))
+    u[1, 3] = 0.0
+    u /= u.sum(axis=1, keepdims=True)
+    arrows = A.stratum_arrows(points, frames, u, 4, 4, scale=0.5, lift=0.01)
+    assert arrows.count == 3 * 16 - 1                     # u = 0 gets no arrow
+    assert np.allclose(arrows.lengths, 0.5 * u[arrows.point, arrows.stratum])
+    assert np.allclose(arrows.probability, u[arrows.point, arrows.stratum])
+    # Directions are the strata centres, rotated into each point's frame: in the upper hemisphere.
+    local = stratum_centers(4, 4)[arrows.stratum]
+    world = np.einsum("nj,njk->nk", local, frames[arrows.point])
+    assert np.allclose(arrows.directions, world)
+    assert np.all(np.einsum("ij,ij->i", arrows.directions, normals[arrows.point]) > 0)
+    assert np.allclose(arrows.starts, points[arrows.point] + 0.01 * normals[arrows.point])
+    assert np.allclose(np.linalg.norm(arrows.ends - arrows.starts, axis=1), arrows.lengths)
+    few = A.stratum_arrows(points, frames, u, 4, 4, scale=1.0, min_probability=0.1)
+    assert np.all(few.probability > 0.1) and few.count == int((u > 0.1).sum())
+    with pytest.raises(ValueError, match="strata"):
+        A.stratum_arrows(points, frames, u, 2, 4, scale=1.0)
+
+
+def test_divergence_and_entropy():
+    w = stratum_cosine_weights(4, 4)
+    passive = np.tile(w, (3, 1))
+    sharp = np.zeros(16)
+    sharp[5] = 1.0
+    half = np.zeros(16)
+    half[[2, 9]] = 0.5
+    u = np.vstack([passive[0], sharp, half])
+    kl = A.policy_divergence(u, w)
+    assert kl[0] == pytest.approx(0.0, abs=1e-12)
+    assert kl[1] == pytest.approx(-np.log(w[5]))
+    assert kl[2] == pytest.approx(0.5 * np.log(0.5 / w[2]) + 0.5 * np.log(0.5 / w[9]))
+    H = A.policy_entropy(u)
+    assert H[1] == 0.0 and H[2] == pytest.approx(np.log(2)) and H[0] > H[2]
+
+
+def test_most_informative_takes_the_best_and_spreads_them():
+    rng = np.random.default_rng(1)
+    # 900 points on a 1 m floor; the score peaks in one corner (like the states under a light).
+    xy = rng.random((900, 2))
+    points = np.column_stack([xy, np.zeros(900)])
+    score = np.exp(-8 * np.linalg.norm(xy, axis=1))
+    chosen = A.most_informative(points, score, 20)
+    assert len(chosen) == 20 and len(set(chosen.tolist())) == 20
+    assert chosen[0] == np.argmax(score)
+    assert np.all(np.diff(score[chosen]) <= 0)
+    # Spread: no two chosen points closer than a quarter of the cell size.
+    cell = np.sqrt(2 * 1.0 / (2 * 20))
+    d = np.linalg.norm(points[chosen][:, None] - points[chosen][None], axis=2) + np.eye(20) * 9
+    assert d.min() > 0.25 * cell
+    # The plain top 20 would all crowd into the corner.
+    top = np.argsort(-score)[:20]
+    assert np.linalg.norm(points[top], axis=1).max() < np.linalg.norm(points[chosen], axis=1).max()
+    # Candidates restrict the choice; asking for more than there are returns them all.
+    cand = np.arange(100, 110)
+    assert set(A.most_informative(points, score, 50, candidates=cand)) == set(cand)
+    assert len(A.most_informative(points, score, 0)) == 0
+
+
+def test_even_subset():
+    idx = np.arange(100, 200)
+    sub = A.even_subset(idx, 10)
+    assert len(sub) == 10 and np.all(np.diff(sub) == 10)
+    assert np.array_equal(A.even_subset(idx[:5], 10), idx[:5])
+
+
+def test_nearest_state_respects_the_side_of_a_thin_wall():
+    # A 2 mm wall: states on the front (+z) and back (-z) faces at the same x, y.
+    points = np.array([[0, 0, 0.001], [0, 0, -0.001], [0.5, 0, 0.001]])
+    normals = np.array([[0, 0, 1.0], [0, 0, -1.0], [0, 0, 1.0]])
+    assert A.nearest_state(points, normals, [0.0, 0.0, 0.0015]) == 0
+    assert A.nearest_state(points, normals, [0.0, 0.0, -0.0015]) == 1
+    # Inside the wall, nearer to the back face: the back face has it in front (the front does not).
+    assert A.nearest_state(points, normals, [0.0, 0.0, -0.0009]) == 1
+    assert A.nearest_state(points, normals, [0.4, 0.0, 0.01]) == 2
+    assert A.nearest_state(points, normals, [0.0, 0.0, 0.01], candidates=[1, 2]) == 2
+    assert A.nearest_state(points, normals, [0, 0, 0], candidates=[]) == -1
+    # No state has the location in front: the nearest of all.
+    assert A.nearest_state(points[:1], normals[:1], [0.0, 0.0, -1.0]) == 0
+
+
+def test_next_state_targets():
+    cols = np.array([4, 0, 7, 2, 5])
+    vals = np.array([0.1, 0.3, 0.05, 0.5, 0.05])
+    pts, prob, terminal = A.next_state_targets(cols, vals, n_points=5, count=2)
+    assert list(pts) == [2, 0] and np.allclose(prob, [0.5, 0.3])
+    assert terminal == pytest.approx(0.1)      # columns 5 and 7 are terminals
+    pts, prob, _ = A.next_state_targets(cols, vals, n_points=5)
+    assert list(pts) == [2, 0, 4]
+
+
+def test_arrows_between():
+    a = A.arrows_between([[0, 0, 0], [1, 1, 1]], [[0, 0, 2], [1, 1, 1]], [0.7, 0.3], 4, shorten=0.5)
+    assert np.allclose(a.directions[0], [0, 0, 1]) and a.lengths[0] == pytest.approx(1.5)
+    assert a.lengths[1] == 0.0 and np.all(a.point == 4) and np.all(a.stratum == -1)
+
+
+def sample_arrows(n=5, seed=2):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return A.Arrows(rng.normal(size=(n, 3)), d, rng.uniform(0.2, 1.0, n), rng.random(n),
+                    np.arange(n), np.zeros(n, dtype=np.int64))
+
+
+def test_arrow_lines():
+    arrows = sample_arrows()
+    verts, which = A.arrow_lines(arrows, head_fraction=0.25, head_width=0.4)
+    assert verts.shape == (50, 3) and verts.dtype == np.float32 and np.all(which == np.repeat(range(5), 10))
+    seg = verts.reshape(5, 5, 2, 3)
+    assert np.allclose(seg[:, 0, 0], arrows.starts, atol=1e-6) and np.allclose(seg[:, 0, 1], arrows.ends, atol=1e-6)
+    # Barbs start at the tip, reach back 25 % of the length and 0.4 x that sideways.
+    barb = seg[:, 1:, 1] - arrows.ends[:, None, :]
+    along = np.einsum("nbj,nj->nb", barb, arrows.directions)
+    assert np.allclose(along, -0.25 * arrows.lengths[:, None], atol=1e-5)
+    side = np.linalg.norm(barb - along[..., None] * arrows.directions[:, None, :], axis=2)
+    assert np.allclose(side, 0.1 * arrows.lengths[:, None], atol=1e-5)
+    assert A.arrow_lines(A.Arrows.empty())[0].shape == (0, 3)
+
+
+def signed_volume(verts, tris):
+    c = verts[tris].astype(np.float64)
+    return np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])).sum() / 6.0
+
+
+@pytest.mark.parametrize("sides", [3, 6, 8])
+def test_arrow_mesh_is_closed_outward_and_has_the_right_volume(sides):
+    arrows = sample_arrows(4)
+    r = np.array([0.01, 0.02, 0.015, 0.03])
+    verts, tris, which = A.arrow_mesh(arrows, r, sides=sides)
+    nv, nf = 3 * sides + 1, 6 * sides - 2
+    assert verts.shape == (4 * nv, 3) and tris.shape == (4 * nf, 3) and np.all(which == np.repeat(range(4), nv))
+    polygon = 0.5 * sides * np.sin(2 * np.pi / sides)          # area of the unit-radius polygon
+    for i in range(4):
+        t = tris[i * nf:(i + 1) * nf] - i * nv
+        v = verts[i * nv:(i + 1) * nv]
+        # Closed 2-manifold: every edge is used exactly twice, once in each direction.
+        edges = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+        assert len({tuple(e) for e in edges.tolist()}) == len(edges)
+        assert {tuple(e) for e in edges.tolist()} == {tuple(e[::-1]) for e in edges.tolist()}
+        hl = min(6 * r[i], 0.45 * arrows.lengths[i])
+        expected = polygon * r[i] ** 2 * (arrows.lengths[i] - hl) + polygon * (2.5 * r[i]) ** 2 * hl / 3
+        assert signed_volume(v - v.mean(axis=0), t) == pytest.approx(expected, rel=1e-4)  # > 0: outward
+        tip = v[3 * sides]
+        assert np.allclose(tip, arrows.ends[i], atol=1e-5)
+    with pytest.raises(ValueError):
+        A.arrow_mesh(arrows, 0.01, sides=2)
+    assert A.arrow_mesh(A.Arrows.empty(), 0.01)[0].shape == (0, 3)
+
+
+def test_marker_mesh():
+    verts, tris, which = A.marker_mesh([[0, 0, 0], [1, 2, 3]], [0.1, 0.2])
+    assert verts.shape == (12, 3) and tris.shape == (16, 3) and list(which) == [0] * 6 + [1] * 6
+    vol0 = signed_volume(verts[:6], tris[:8])
+    vol1 = signed_volume(verts[6:] - [1, 2, 3], tris[8:] - 6)
+    assert vol0 == pytest.approx(4 / 3 * 0.1 ** 3, rel=1e-5) and vol1 == pytest.approx(4 / 3 * 0.2 ** 3, rel=1e-5)
+
+
+def test_concatenate():
+    a, b = sample_arrows(2, 3), sample_arrows(3, 4)
+    c = A.Arrows.concatenate([a, None, b])
+    assert c.count == 5 and np.allclose(c.starts[2:], b.starts)
+    assert A.Arrows.concatenate([]).count == 0
