@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .colormap import colormap_linear
 from .hemisphere import stratum_centers, tangent_frame
 
 
@@ -320,3 +321,157 @@ def marker_mesh(centers, radii):
     triangles = faces[None] + (np.arange(k) * 6)[:, None, None]
     return (verts.reshape(-1, 3).astype(np.float32), triangles.reshape(-1, 3).astype(np.int64),
             np.repeat(np.arange(k), 6))
+
+
+# -- what the viewport draws ----------------------------------------------------------------------
+
+#: Colour map of the arrows, and where on it the least probable arrow starts: arrows stay visible
+#: (never black) and differ from the desirability's viridis.
+ARROW_COLORMAP = "INFERNO"
+ARROW_COLOR_FLOOR = 0.35
+
+
+def arrow_colors(probability, vmax=None, colormap=ARROW_COLORMAP, floor=ARROW_COLOR_FLOOR):
+    """(N, 4) scene-linear RGBA of arrows by probability: ``floor + (1 - floor) p / vmax`` on the
+    map (vmax: the largest probability shown, default the largest of ``probability``)."""
+    p = np.asarray(probability, dtype=np.float64).reshape(-1)
+    if vmax is None:
+        vmax = float(p.max()) if p.size else 1.0
+    t = floor + (1.0 - floor) * np.clip(p / max(float(vmax), 1e-300), 0.0, 1.0)
+    return colormap_linear(t, colormap)
+
+
+@dataclass
+class Probe:
+    """The optimal policy of one state, as in the thesis's Figure 5.
+
+    state          index of the probed state (point)
+    location       (3,) where the probe was placed
+    arrows         :class:`Arrows` of u*(k|x) over the strata of the state
+    targets        (K,) surface next states x' with the largest u*(x'|x), largest first
+    target_probability (K,)
+    terminal_probability  total u* of the terminal next states (lights, world, void)
+    target_points  (K, 3) positions of the targets
+    """
+
+    state: int
+    location: np.ndarray
+    arrows: Arrows
+    targets: np.ndarray
+    target_probability: np.ndarray
+    terminal_probability: float
+    target_points: np.ndarray
+
+
+@dataclass
+class PolicyView:
+    """Everything the viewport overlay draws for the optimal policy (one session result).
+
+    arrows   :class:`Arrows` of the chosen subset of states (may be empty)
+    subset   'ACTIVE_OBJECT', 'MOST_INFORMATIVE' or '' (probe only)
+    points   (P,) the states that got arrows
+    probe    :class:`Probe` or None
+    """
+
+    arrows: Arrows
+    subset: str = ""
+    points: np.ndarray = None
+    probe: Probe = None
+
+    def summary(self):
+        parts = []
+        if self.arrows.count:
+            parts.append(f"{self.arrows.count} arrows on {len(np.unique(self.arrows.point))} states")
+        if self.probe is not None:
+            parts.append(f"probe at state {self.probe.state}")
+        return ", ".join(parts) if parts else "no arrows"
+
+    def lines(self, head_fraction=0.3):
+        """``(vertices (2L, 3) float32, colours (2L, 4) float32)`` of every segment to draw: the
+        subset's arrows, the probe's arrows and a cross at each probe target, coloured by
+        probability (:func:`arrow_colors`, each group on its own scale)."""
+        verts, colors = [], []
+        for arrows in (self.arrows, self.probe.arrows if self.probe is not None else None):
+            if arrows is None or arrows.count == 0:
+                continue
+            v, which = arrow_lines(arrows, head_fraction=head_fraction)
+            verts.append(v)
+            colors.append(arrow_colors(arrows.probability)[which])
+        if self.probe is not None and len(self.probe.targets):
+            v, which = target_crosses(self.probe.target_points, self._cross_size())
+            verts.append(v)
+            colors.append(arrow_colors(self.probe.target_probability)[which])
+        if not verts:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 4), np.float32)
+        return np.concatenate(verts).astype(np.float32), np.concatenate(colors).astype(np.float32)
+
+    def _cross_size(self):
+        a = self.probe.arrows
+        return 0.25 * float(a.lengths.max()) if a.count else 0.01
+
+
+def target_crosses(centers, size):
+    """Three axis-aligned segments of length ``2 size`` through each centre (a 3D cross), for
+    the viewport; returns ``(vertices (6K, 3) float32, marker (6K,) int64)``."""
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    axes = np.eye(3) * float(size)
+    v = np.stack([centers - axes[0], centers + axes[0], centers - axes[1], centers + axes[1],
+                  centers - axes[2], centers + axes[2]], axis=1)
+    return v.reshape(-1, 3).astype(np.float32), np.repeat(np.arange(len(centers)), 6)
+
+
+# -- from a solved LMDP to what is drawn --------------------------------------------------------------
+
+SUBSETS = ("ACTIVE_OBJECT", "MOST_INFORMATIVE")
+
+
+def choose_points(states, u, subset, max_points, candidates):
+    """The states that get arrows: ``candidates`` (point indices, e.g. those of the active
+    object) thinned to ``max_points`` at even strides for ACTIVE_OBJECT, or the ``max_points``
+    candidates of largest KL(u* || p), spread over space, for MOST_INFORMATIVE."""
+    if subset not in SUBSETS:
+        raise ValueError(f"subset must be one of {', '.join(SUBSETS)}, not {subset!r}")
+    candidates = np.asarray(candidates, dtype=np.int64)
+    if subset == "ACTIVE_OBJECT":
+        return even_subset(candidates, int(max_points))
+    score = policy_divergence(u[candidates], states.stratum_weight)
+    full = np.zeros(states.n_points)
+    full[candidates] = score
+    return most_informative(states.points, full, int(max_points), candidates=candidates)
+
+
+def default_min_probability(n_strata):
+    """Arrows below a quarter of the uniform probability 1/S are not drawn (clutter)."""
+    return 0.25 / max(int(n_strata), 1)
+
+
+def policy_view(states, u, subset, max_points, scale, candidates, min_probability=None, probe=None):
+    """:class:`PolicyView` of the chosen states' stratum arrows (see :func:`choose_points`)."""
+    points = choose_points(states, u, subset, max_points, candidates)
+    if min_probability is None:
+        min_probability = default_min_probability(states.n_strata)
+    arrows = stratum_arrows(states.points[points], states.frames[points], u[points], states.strata_u,
+                            states.strata_v, scale, min_probability, lift=0.01 * float(scale))
+    arrows.point = points[arrows.point]
+    return PolicyView(arrows=arrows, subset=subset, points=points, probe=probe)
+
+
+def probe(states, u, policy_row, location, scale, next_states=24, candidates=None):
+    """:class:`Probe` of the state nearest to ``location`` (:func:`nearest_state`).
+
+    ``u (m, S)`` directional policy; ``policy_row``: a callable ``i -> (columns, values)`` giving
+    the row of u*(x'|x) over the next states (:func:`lmdp_addon.policy.optimal_policy`).
+    Every stratum arrow is drawn (the whole distribution, as in Figure 5), with length
+    ``scale x u*(k|x)``.
+    """
+    i = nearest_state(states.points, states.normals, location, candidates)
+    if i < 0:
+        raise ValueError("there are no states to probe")
+    arrows = stratum_arrows(states.points[i:i + 1], states.frames[i:i + 1], u[i:i + 1], states.strata_u,
+                            states.strata_v, scale, 0.0, lift=0.01 * float(scale))
+    arrows.point[:] = i
+    cols, vals = policy_row(i)
+    targets, probability, terminal = next_state_targets(cols, vals, states.n_points, next_states)
+    return Probe(state=i, location=np.asarray(location, dtype=np.float64).reshape(3), arrows=arrows,
+                 targets=targets, target_probability=probability, terminal_probability=terminal,
+                 target_points=states.points[targets] + 0.01 * float(scale) * states.normals[targets])

@@ -179,3 +179,68 @@ def test_concatenate():
     c = A.Arrows.concatenate([a, None, b])
     assert c.count == 5 and np.allclose(c.starts[2:], b.starts)
     assert A.Arrows.concatenate([]).count == 0
+
+
+# -- on a solved LMDP -------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def cornell():
+    from lmdp_addon import pipeline, policy
+    from lmdp_addon.scenes import build_scene_arrays
+    from lmdp_addon.settings import Settings
+    scene = build_scene_arrays("CORNELL_BOX")
+    settings = Settings(point_count=400, rays_per_stratum=2)
+    result = pipeline.run_all(scene, settings)
+    u = policy.stratum_policy(result.dynamics, result.solution, "all")
+    return scene, result, u, policy.optimal_policy(result.lmdp, result.solution)
+
+
+def test_policy_view_most_informative_and_active_object(cornell):
+    scene, result, u, _ = cornell
+    states = result.states
+    floor = np.flatnonzero(states.point_object == scene.object_names.index("Floor"))
+    view = A.policy_view(states, u, "ACTIVE_OBJECT", 10, 0.2, floor)
+    assert len(view.points) == 10 and set(view.points) <= set(floor)
+    assert set(view.arrows.point) <= set(view.points)
+    assert np.all(view.arrows.probability > A.default_min_probability(16))
+    assert np.allclose(view.arrows.lengths, 0.2 * u[view.arrows.point, view.arrows.stratum])
+    everyone = np.arange(states.n_points)
+    best = A.policy_view(states, u, "MOST_INFORMATIVE", 15, 0.2, everyone)
+    kl = A.policy_divergence(u, states.stratum_weight)
+    assert len(best.points) == 15 and best.points[0] == np.argmax(kl)
+    assert np.median(kl[best.points]) > np.percentile(kl, 75)   # informative, if spread out
+    verts, colors = best.lines()
+    assert len(verts) == 10 * best.arrows.count and colors.shape == (len(verts), 4)
+    with pytest.raises(ValueError):
+        A.policy_view(states, u, "EVERYTHING", 5, 0.1, everyone)
+
+
+def test_probe_reads_the_state_under_the_cursor(cornell):
+    """Like the thesis's Figure 5: the whole u*(.|x) of the state under the probe."""
+    scene, result, u, U = cornell
+    states = result.states
+
+    def row(i):
+        return U.indices[U.indptr[i]:U.indptr[i + 1]], U.data[U.indptr[i]:U.indptr[i + 1]]
+
+    i = 37
+    location = states.points[i] + 1e-4 * states.normals[i]
+    p = A.probe(states, u, row, location, scale=0.3, next_states=10)
+    assert p.state == i
+    assert p.arrows.count == int((u[i] > 0).sum()) and np.allclose(p.arrows.probability.sum(), u[i].sum())
+    assert len(p.targets) <= 10 and np.all(np.diff(p.target_probability) <= 0)
+    cols, vals = row(i)
+    surface = vals[cols < states.n_points]
+    assert p.target_probability[0] == pytest.approx(surface.max())
+    assert p.terminal_probability + surface.sum() == pytest.approx(1.0)
+    view = A.PolicyView(A.Arrows.empty(), probe=p)
+    verts, colors = view.lines()
+    assert len(verts) == 10 * p.arrows.count + 6 * len(p.targets)
+    assert "probe at state 37" in view.summary()
+
+
+def test_arrow_colors():
+    c = A.arrow_colors([0.0, 0.5, 1.0])
+    assert c.shape == (3, 4)
+    assert np.all(np.diff(c[:, :3].sum(axis=1)) > 0)            # brighter for more probable
+    assert np.allclose(c[2], A.arrow_colors([2.0], vmax=2.0)[0])
