@@ -186,21 +186,23 @@ def format_log10(x):
     return f"{m:.2f}e{e:+03d}"
 
 
-def log_scale_from_log10(log10_values, label="", low_percentile=1.0, max_decades=None):
+def log_scale_from_log10(log10_values, label="", low_percentile=1.0, high_percentile=99.0,
+                         max_decades=None):
     """Log :class:`ColorScale` for data given as log10 values (-inf for zeros).
 
-    The top is the largest finite value; the bottom is the ``low_percentile`` percentile of the
-    finite values (so a handful of nearly dark states does not squeeze the map), and at most
-    ``max_decades`` below the top if given. In THESIS mode z falls by e^-λ per bounce, so its
-    range can span hundreds of decades: no cap by default. A constant field gets a range of half
-    a decade around it.
+    The range runs from the ``low_percentile`` to the ``high_percentile`` percentile of the
+    finite values: a handful of extreme states (a halo right next to a light, a corner under a
+    box) is clipped to the ends of the map instead of squeezing everything else into a few
+    colours; ``data_lo`` / ``data_hi`` keep the full extent for the legend. With
+    ``max_decades`` the range spans at most that many decades below its top. (In THESIS mode z
+    falls by e^-λ per bounce, so its range can span hundreds of decades: no cap by default.)
+    A constant field gets a range of half a decade around it.
     """
     x = np.asarray(log10_values, dtype=np.float64).reshape(-1)
     x = x[np.isfinite(x)]
     if x.size == 0:
         return ColorScale(0.0, 1.0, True, label)
-    hi = float(x.max())
-    lo = float(np.percentile(x, low_percentile))
+    lo, hi = (float(v) for v in np.percentile(x, [low_percentile, high_percentile]))
     if max_decades is not None:
         lo = max(lo, hi - float(max_decades))
     if hi - lo < 1e-9:
@@ -208,14 +210,15 @@ def log_scale_from_log10(log10_values, label="", low_percentile=1.0, max_decades
     return ColorScale(lo, hi, True, label, float(x.min()), float(x.max()))
 
 
-def linear_scale(values, label=""):
-    """Linear :class:`ColorScale` over the finite values (a constant field gets ±0.5 around it)."""
+def linear_scale(values, label="", low_percentile=0.0, high_percentile=100.0):
+    """Linear :class:`ColorScale` from the ``low_percentile`` to the ``high_percentile``
+    percentile of the finite values (a constant field gets ±0.5 around it)."""
     v = np.asarray(values, dtype=np.float64).reshape(-1)
     v = v[np.isfinite(v)]
     if v.size == 0:
         return ColorScale(0.0, 1.0, False, label)
-    lo, hi = float(v.min()), float(v.max())
-    data = (lo, hi)
+    lo, hi = (float(x) for x in np.percentile(v, [low_percentile, high_percentile]))
+    data = (float(v.min()), float(v.max()))
     if hi - lo <= 1e-12 * max(abs(hi), 1.0):
         lo, hi = lo - 0.5, hi + 0.5
     return ColorScale(lo, hi, False, label, *data)

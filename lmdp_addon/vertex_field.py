@@ -213,9 +213,10 @@ def state_quantity(solution, quantity="Z", residuals=None):
     """The :class:`StateQuantity` of ``solution`` for ``quantity``.
 
     Z: desirability (PHYSICAL: outgoing radiance; its Rec.709 luminance is the scalar z), log
-    scale. COST_TO_GO: J = -(ln z)/λ of the scalar z (design.md's convention), linear scale.
-    RESIDUAL: ``residuals (m,)`` from :func:`lmdp_addon.solvers.state_residuals` (relative
-    |z - QPz|/z per state), log scale, floored at 1e-16.
+    scale over the 1st-99th percentile of the states. COST_TO_GO: J = -(ln z)/λ of the scalar z
+    (design.md's convention), linear scale over the 1st-99th percentile. RESIDUAL:
+    ``residuals (m,)`` from :func:`lmdp_addon.solvers.state_residuals` (relative |z - QPz|/z per
+    state), log scale over the full range, floored at 1e-16.
     """
     if quantity not in QUANTITIES:
         raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, not {quantity!r}")
@@ -236,13 +237,13 @@ def state_quantity(solution, quantity="Z", residuals=None):
         scale = log_scale_from_log10(value, label)
     elif quantity == "COST_TO_GO":
         value = -ln_scalar / lam
-        scale = linear_scale(value, f"J = -(ln z)/λ (λ = {lam:.4g})")
+        scale = linear_scale(value, f"J = -(ln z)/λ (λ = {lam:.4g})", 1.0, 99.0)
     else:
         if residuals is None:
             raise ValueError("the RESIDUAL quantity needs the per-state residuals")
         res = np.maximum(np.asarray(residuals, dtype=np.float64).reshape(-1), RESIDUAL_FLOOR)
         value = np.log10(res)
-        scale = log_scale_from_log10(value, "relative residual |z - QPz|/z", low_percentile=0.0)
+        scale = log_scale_from_log10(value, "relative residual |z - QPz|/z", 0.0, 100.0)
     return StateQuantity(quantity, log10_z, z_rgb, value, scale, lam)
 
 

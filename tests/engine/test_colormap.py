@@ -61,18 +61,21 @@ def test_log_scales_hold_values_beyond_float_range():
     assert "5.01e-401" in C.ColorScale(-410.0, -400.3, True, "z").describe()
 
 
-def test_log_scale_from_data_is_robust_and_bounded():
+def test_log_scale_from_data_clips_the_extremes_and_remembers_them():
     rng = np.random.default_rng(0)
     x = rng.uniform(-6.0, 1.0, 1000)
     x[:3] = -np.inf                      # z = 0 states
     x[3] = -300.0                        # one state that is nearly unreachable
+    x[4] = 5.0                           # one state in the halo of a light
     scale = C.log_scale_from_log10(x, "z")
-    assert scale.hi == pytest.approx(x[np.isfinite(x)].max())
-    assert -6.2 < scale.lo < -5.8        # the 1st percentile, not the outlier
-    assert scale.data_lo == -300.0
-    wide = C.log_scale_from_log10(np.array([-300.0, 0.0]), low_percentile=0.0)
+    finite = x[np.isfinite(x)]
+    assert scale.hi == pytest.approx(np.percentile(finite, 99)) and 0.8 < scale.hi < 1.0
+    assert -6.0 < scale.lo < -5.8        # the 1st percentile, not the outlier
+    assert (scale.data_lo, scale.data_hi) == (-300.0, 5.0)
+    assert np.allclose(scale.position_of_log10([5.0, -300.0]), [1.0, 0.0])
+    wide = C.log_scale_from_log10(np.array([-300.0, 0.0]), low_percentile=0.0, high_percentile=100.0)
     assert wide.decades == pytest.approx(300.0)   # THESIS-mode z spans hundreds of decades
-    capped = C.log_scale_from_log10(np.array([-300.0, 0.0]), low_percentile=0.0, max_decades=12)
+    capped = C.log_scale_from_log10(np.array([-300.0, 0.0]), "", 0.0, 100.0, max_decades=12)
     assert capped.decades == pytest.approx(12.0)
     flat = C.log_scale_from_log10(np.full(10, 2.0))
     assert flat.vmin < 100.0 < flat.vmax and np.allclose(flat.position([100.0]), 0.5)
@@ -81,6 +84,8 @@ def test_log_scale_from_data_is_robust_and_bounded():
 def test_linear_scale():
     s = C.linear_scale(np.array([1.0, 3.0, np.inf, np.nan]), "J")
     assert (s.lo, s.hi, s.log) == (1.0, 3.0, False)
+    robust = C.linear_scale(np.r_[np.linspace(0, 1, 101), 50.0], "J", 0.0, 99.0)
+    assert robust.hi < 1.5 and robust.data_hi == 50.0
     assert np.allclose(s.position([1.0, 2.0, 3.0, 5.0]), [0.0, 0.5, 1.0, 1.0])
     flat = C.linear_scale(np.array([2.0, 2.0]))
     assert np.allclose(flat.position([2.0]), 0.5)

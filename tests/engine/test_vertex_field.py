@@ -111,11 +111,12 @@ def test_thesis_desirability_is_exact_where_z_underflows():
     sq = VF.state_quantity(fake_solution(log_z), "Z")
     assert np.allclose(sq.log10_z[:2], log_z[:2, 0] / np.log(10))
     assert sq.log10_z[2] == -np.inf
-    assert sq.scale.log and sq.scale.hi == pytest.approx(0.0)
+    assert sq.scale.log and sq.scale.data_hi == pytest.approx(0.0)
     assert sq.scale.data_lo == pytest.approx(-2000.0 / np.log(10))  # 869 decades below the top
     J = VF.state_quantity(fake_solution(log_z, lambda_=10.0), "COST_TO_GO")
     assert np.allclose(J.value[[0, 1, 3]], [200.0, 100.0, 0.0]) and J.value[2] == np.inf
-    assert not J.scale.log and (J.scale.lo, J.scale.hi) == (0.0, 200.0)
+    assert not J.scale.log and (J.scale.data_lo, J.scale.data_hi) == (0.0, 200.0)
+    assert 0.0 < J.scale.lo < J.scale.hi < 200.0    # 1st and 99th percentiles
 
 
 def test_residual_quantity_needs_residuals_and_floors_zeros():
