@@ -1,0 +1,468 @@
+"""Texture baking: indirect diffuse light of the selected meshes into lightmaps, texel for texel
+like Cycles' ``bake(type='DIFFUSE', pass_filter={'INDIRECT'})``.
+
+For every baked object: its texels at ``bake_resolution`` (``texels.rasterize_texels``: Cycles'
+mapping of its UV map), ``bake_samples`` paths per texel started at points of the texel's
+footprint (``texels.sample_footprint``: sample 0 the texel point, the others jittered in Cycles'
+half-pixel box), each traced by :class:`~lmdp_addon.tracer.IndirectTracer`, averaged, and the
+``bake_margin`` filled by ``texels.dilate`` (Cycles' EXTEND margin).
+
+The samples of a texel are split into B independent *batches* (B = the largest divisor of the
+sample count up to 8). Inside a batch the first direction is stratified: sample j of n uses the
+Hammersley point ``((j + ½)/n, radical_inverse₂(j))`` of the unit square shifted by a random
+offset per texel and batch (Cranley–Patterson rotation), and ``frac(j/φ + s)`` chooses between
+guide and cosine sampling. Every batch mean is therefore an unbiased estimate on its own, the B
+batch means are independent, and their spread gives each texel's standard error
+(``ObjectBake.standard_error``) without assuming anything about the estimator's variance.
+
+Work is cut into units of at most :data:`PATHS_PER_UNIT` paths (bounded memory); unit u of
+object o and batch b draws its random numbers from ``default_rng([seed, o, b, u])``, so a bake is
+deterministic for a seed whatever the thread scheduling. Units run on a small thread pool
+(embree and numpy release the GIL); ``progress.update`` between units raises ``Cancelled`` when
+the user asked to stop, and nothing is returned.
+"""
+import hashlib
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .dynamics import StateLocator
+from .errors import SceneError, StageOrderError
+from .policy import stratum_policy
+from .progress import Progress
+from .raycast import RayCaster
+from .settings import BAKE_MODES
+from .texels import dilate, rasterize_texels, sample_footprint
+from .tracer import GatherField, IndirectTracer, StateGuide, TraceStats
+
+#: Most paths traced by one work unit (memory: ~0.5 KiB per path in flight).
+PATHS_PER_UNIT = 1 << 16
+#: Work units in flight (the machine's cores; embree and numpy release the GIL).
+BAKE_THREADS = 2
+#: Most independent batches per texel (for the standard error).
+MAX_BATCHES = 8
+#: Suffix of the images the add-on writes.
+IMAGE_SUFFIX = "_lmdp_indirect"
+
+GOLDEN = 0.6180339887498949
+
+
+@dataclass
+class ObjectBake:
+    """The lightmap of one object.
+
+    name            object name; the image is ``name + IMAGE_SUFFIX``
+    texels          :class:`~lmdp_addon.texels.TexelSet` (covered texels, Cycles' mapping)
+    triangles       (T_o,) the scene triangle of each of the object's local triangle indices
+    value           (n, 3) float32 estimate of E_ind/π per covered texel (W / sr m²)
+    standard_error  (n, 3) float32 standard error of ``value`` from the batch means (NaN for 1 batch)
+    image           (R, R, 4) float32 RGBA, margin filled, alpha 1 where filled; row 0 = bottom
+    samples         paths per texel; batches: independent batches they were split into
+    stats           :class:`~lmdp_addon.tracer.TraceStats`
+    seconds         wall time of this object's bake
+    """
+
+    name: str
+    texels: object
+    triangles: np.ndarray
+    value: np.ndarray
+    standard_error: np.ndarray
+    image: np.ndarray
+    samples: int
+    batches: int
+    stats: TraceStats
+    seconds: float
+
+    @property
+    def image_name(self):
+        return self.name + IMAGE_SUFFIX
+
+    @property
+    def n_texels(self):
+        return len(self.texels)
+
+    @property
+    def resolution(self):
+        return self.texels.resolution
+
+
+@dataclass
+class BakeResult:
+    """Lightmaps of the baked objects plus what produced them (``bake_stats.json``)."""
+
+    mode: str
+    objects: list
+    settings: dict
+    seconds: dict = field(default_factory=dict)   #: stage -> wall time: sample, build, solve, bake
+    warnings: list = field(default_factory=list)
+    guide_info: dict = field(default_factory=dict)
+
+    @property
+    def n_texels(self):
+        return sum(o.n_texels for o in self.objects)
+
+    def object(self, name):
+        for o in self.objects:
+            if o.name == name:
+                return o
+        raise KeyError(name)
+
+    def summary(self):
+        rays = sum(o.stats.total_rays for o in self.objects)
+        secs = sum(o.seconds for o in self.objects)
+        return (f"{self.mode} bake of {len(self.objects)} object(s), {self.n_texels} texels x "
+                f"{self.settings.get('bake_samples')} samples, {rays} rays in {secs:.2f} s")
+
+    def stats(self):
+        """Plain dict for ``bake_stats.json``."""
+        objects = {}
+        for o in self.objects:
+            rays = o.stats.total_rays
+            objects[o.name] = {
+                "image": o.image_name,
+                "resolution": o.resolution,
+                "texels": o.n_texels,
+                "samples": o.samples,
+                "batches": o.batches,
+                "paths": o.stats.paths,
+                "rays": rays,
+                "closest_hit_rays": o.stats.rays,
+                "shadow_rays": o.stats.shadow_rays,
+                "rays_per_second": rays / o.seconds if o.seconds > 0 else None,
+                "trace": o.stats.as_dict(),
+                "mean": [float(x) for x in o.value.mean(axis=0)] if o.n_texels else [0.0, 0.0, 0.0],
+                "mean_relative_standard_error": _relative_error(o),
+                "seconds": {**{k: v for k, v in self.seconds.items() if k != "bake"}, "bake": o.seconds},
+            }
+        return {
+            "mode": self.mode,
+            "settings": dict(self.settings),
+            "seconds": dict(self.seconds),
+            "guide": dict(self.guide_info),
+            "objects": objects,
+            "warnings": list(self.warnings),
+        }
+
+
+def _relative_error(o):
+    """RMS standard error over the texels divided by the mean value (luminance-free: all channels)."""
+    if o.n_texels == 0 or not np.all(np.isfinite(o.standard_error)):
+        return None
+    mean = float(o.value.mean())
+    return float(np.sqrt(np.mean(o.standard_error.astype(np.float64) ** 2)) / mean) if mean > 0 else None
+
+
+# -- texels and input checks ---------------------------------------------------------------------
+
+def object_index(scene, name):
+    try:
+        return scene.object_names.index(name)
+    except ValueError:
+        raise SceneError(f"Object '{name}' is not part of the captured scene (is it hidden?)") from None
+
+
+def object_texels(scene, index, resolution, reverse=False):
+    """Texels of object ``index`` at ``resolution``: ``(TexelSet, triangles (T_o,))``.
+
+    ``triangles`` maps the TexelSet's local triangle indices to the scene's triangles. With
+    ``reverse`` the triangles are rasterised in reverse order (used to detect overlaps).
+    """
+    tris = np.flatnonzero(scene.triangle_object == index)
+    if reverse:
+        tris = tris[::-1]
+    normals, _ = scene.triangle_geometry()
+    ts = rasterize_texels(scene.triangle_uv[tris], scene.corners()[tris], normals[tris], resolution)
+    return ts, tris
+
+
+def uv_overlaps(scene, index, resolution):
+    """Texels whose centre two or more of the object's UV triangles cover: ``(count, (row, col))``.
+
+    Rasterising in both triangle orders (the last triangle wins a texel, like Blender) gives a
+    different triangle exactly where several cover the same texel centre; shared edges cover a
+    centre once, so adjacent triangles never count.
+    """
+    a, ta = object_texels(scene, index, resolution)
+    b, tb = object_texels(scene, index, resolution, reverse=True)
+    differs = ta[a.triangle] != tb[b.triangle]
+    count = int(np.count_nonzero(differs))
+    example = (int(a.row[differs][0]), int(a.col[differs][0])) if count else None
+    return count, example
+
+
+def scene_fingerprint(scene):
+    """Hash of the geometry, materials, world and object names of a SceneArrays (not the selection)."""
+    h = hashlib.blake2b(digest_size=16)
+    for array in (scene.vertices, scene.triangles, scene.triangle_object, scene.triangle_albedo,
+                  scene.triangle_emission, scene.triangle_emission_two_sided, scene.world_radiance):
+        h.update(np.ascontiguousarray(array).tobytes())
+    h.update("\0".join(scene.object_names).encode())
+    return h.hexdigest()
+
+
+def check_bake_inputs(scene, names, settings, lmdp=None):
+    """Raise :class:`SceneError` / :class:`StageOrderError` (user messages) before any work.
+
+    Checks: resolution and samples >= 1, the mode, every object has a UV map, covers at least one
+    texel and has no overlapping UVs, the scene has light, GUIDED / FINAL_GATHER have a solution
+    and FINAL_GATHER a PHYSICAL one of this very scene. Returns the warnings to show.
+    """
+    warnings = []
+    mode = settings.bake_mode
+    if mode not in BAKE_MODES:
+        raise SceneError(f"Unknown bake mode {mode!r}: use one of {', '.join(BAKE_MODES)}")
+    R = int(settings.bake_resolution)
+    if R < 1:
+        raise SceneError(f"Bake resolution must be at least 1 pixel (got {R}): set LMDP > Bake > Resolution")
+    if int(settings.bake_samples) < 1:
+        raise SceneError(f"Bake samples must be at least 1 (got {settings.bake_samples}): set LMDP > Bake > Samples")
+    if int(settings.max_bounces) < 1:
+        raise SceneError(f"Max bounces must be at least 1 for indirect light (got {settings.max_bounces})")
+    if not names:
+        raise SceneError("Select at least one mesh object to bake")
+    indices = [object_index(scene, n) for n in names]
+    no_uv = [n for n, i in zip(names, indices) if not scene.object_has_uv[i]]
+    if no_uv:
+        raise SceneError(f"No UV map on {', '.join(no_uv)}: add one (UV > Smart UV Project or "
+                         "Lightmap Pack) or deselect them; the lightmap is laid out by the UV map")
+    empty, overlapping = [], []
+    for n, i in zip(names, indices):
+        count, example = uv_overlaps(scene, i, R)
+        ts, _ = object_texels(scene, i, R)
+        if len(ts) == 0:
+            empty.append(n)
+        elif count:
+            overlapping.append(f"{n} ({count} texels, e.g. column {example[1]}, row {example[0]})")
+    if empty:
+        raise SceneError(f"The UV map of {', '.join(empty)} covers no texel centre of a {R} x {R} "
+                         "image (UVs outside [0, 1] or degenerate): unwrap into the unit square")
+    if overlapping:
+        raise SceneError(f"Overlapping UVs on {'; '.join(overlapping)}: several faces share these "
+                         f"texels of the {R} x {R} lightmap. Give each face its own area "
+                         "(UV > Lightmap Pack, or Smart UV Project) and bake again")
+    if not scene.has_light():
+        raise SceneError("The scene has no light to bake: add an emissive material (Emission "
+                         "shader or Principled emission), an area light, or a non-black world")
+    if mode in ("GUIDED", "FINAL_GATHER"):
+        if lmdp is None or lmdp.solution is None:
+            raise StageOrderError(f"Solve first (LMDP panel > Solve): {mode} bakes are guided by "
+                                  "the optimal policy of the solved states; or use bake mode Unguided")
+        same = scene_fingerprint(scene) == scene_fingerprint(lmdp.scene)
+        if mode == "FINAL_GATHER":
+            if lmdp.solution.cost_mode != "PHYSICAL":
+                raise SceneError("Final Gather reads the outgoing radiance z of the PHYSICAL cost "
+                                 f"mode, but the solution was computed in {lmdp.solution.cost_mode} "
+                                 "mode: set Cost Mode to Physical and run the pipeline again")
+            if not same:
+                raise SceneError("The scene changed since the states were sampled: Final Gather would "
+                                 "read the old solution at the new surfaces. Run the pipeline again "
+                                 "(LMDP > Run All), or bake with Guided or Unguided")
+        elif not same:
+            warnings.append("The scene changed since the states were sampled: the bake traces the "
+                            "current scene, guided by the old optimal policy (still unbiased, but "
+                            "less effective). Run the pipeline again for the best guide")
+        carried = set(np.asarray(lmdp.scene.object_names)[lmdp.states.point_object].tolist())
+        unguided = [n for n in names if n not in carried]
+        if unguided:
+            warnings.append(f"No states on {', '.join(unguided)}: their texels start with cosine "
+                            "sampling (select them when sampling to guide them too)")
+    if mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
+        warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
+                        "the optimal policy is zero; a value below 1 keeps it unbiased")
+    return warnings
+
+
+# -- guide ------------------------------------------------------------------------------------
+
+def build_guide(scene, lmdp):
+    """:class:`StateGuide` of the solved states for tracing ``scene`` (see ``tracer``)."""
+    same = scene_fingerprint(scene) == scene_fingerprint(lmdp.scene)
+    locator = StateLocator(lmdp.scene, lmdp.states)
+    object_map = None
+    if not same:
+        lookup = {n: i for i, n in enumerate(lmdp.scene.object_names)}
+        object_map = np.array([lookup.get(n, -1) for n in scene.object_names], dtype=np.int64)
+    guide = StateGuide(
+        locator=locator,
+        frames=lmdp.states.frames,
+        first=stratum_policy(lmdp.dynamics, lmdp.solution, "points"),
+        later=stratum_policy(lmdp.dynamics, lmdp.solution, "points+world"),
+        strata_u=lmdp.states.strata_u,
+        strata_v=lmdp.states.strata_v,
+        same_scene=same,
+        object_map=object_map,
+    )
+    return guide
+
+
+def build_gather(guide, lmdp):
+    """:class:`GatherField` of the PHYSICAL solution: irradiance/π ``z/ρ`` of every state."""
+    z = np.asarray(lmdp.solution.z, dtype=np.float64)
+    rho = np.asarray(lmdp.states.point_albedo, dtype=np.float64)
+    irradiance = np.where(rho > 0, z / np.where(rho > 0, rho, 1.0), 0.0)
+    return GatherField(locator=guide.locator, irradiance=irradiance, same_scene=guide.same_scene,
+                       object_map=guide.object_map)
+
+
+# -- sampling helpers ----------------------------------------------------------------------------
+
+def radical_inverse2(j):
+    """Van der Corput radical inverse in base 2 of non-negative integers ``j``."""
+    j = np.asarray(j, dtype=np.uint64)
+    out = np.zeros(j.shape, dtype=np.float64)
+    scale = 0.5
+    while np.any(j):
+        out += (j & np.uint64(1)).astype(np.float64) * scale
+        j = j >> np.uint64(1)
+        scale *= 0.5
+    return out
+
+
+def stratified_first_uniforms(n_texels, n, rng):
+    """``(u (n_texels, n, 2), u_mix (n_texels, n))`` for the first direction of n samples per
+    texel: a shifted Hammersley set and a shifted golden-ratio sequence (module docstring)."""
+    j = np.arange(n)
+    base = np.stack([(j + 0.5) / n, radical_inverse2(j)], axis=1)
+    shift = rng.random((n_texels, 3))
+    u = np.mod(base[None, :, :] + shift[:, None, :2], 1.0)
+    u_mix = np.mod(j[None, :] * GOLDEN + shift[:, 2:3], 1.0)
+    return u, u_mix
+
+
+def batch_count(samples):
+    """Largest divisor of ``samples`` that is at most :data:`MAX_BATCHES`."""
+    samples = int(samples)
+    return max(b for b in range(1, min(MAX_BATCHES, samples) + 1) if samples % b == 0)
+
+
+def _texel_subset(ts, sel):
+    """A TexelSet view of the texels ``sel`` (for footprint sampling of a chunk)."""
+    from .texels import TexelSet
+    return TexelSet(ts.resolution, ts.row[sel], ts.col[sel], ts.triangle[sel], ts.barycentric[sel],
+                    ts.position[sel], ts.normal[sel], ts.pixel_barycentric_derivatives[sel],
+                    ts.triangle_corners, ts.triangle_normals)
+
+
+# -- the bake ---------------------------------------------------------------------------------
+
+def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
+                threads=BAKE_THREADS):
+    """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`."""
+    t0 = time.perf_counter()
+    progress = progress if progress is not None else Progress()
+    index = object_index(scene, name)
+    R = int(settings.bake_resolution)
+    N = int(settings.bake_samples)
+    ts, tris = object_texels(scene, index, R)
+    n_tex = len(ts)
+    B = batch_count(N)
+    per_batch = N // B
+    states = np.full(n_tex, -1, dtype=np.int64)
+    if guide is not None and n_tex:
+        states = guide.states_at(ts.position, ts.normal, np.full(n_tex, index))
+    chunk = max(1, PATHS_PER_UNIT // per_batch)
+    units = [(b, lo, min(lo + chunk, n_tex)) for b in range(B) for lo in range(0, n_tex, chunk)]
+    sums = np.zeros((B, n_tex, 3), np.float64)
+    stats = TraceStats()
+    seed = int(settings.seed)
+
+    def run(unit_id):
+        b, lo, hi = units[unit_id]
+        rng = np.random.default_rng([seed, object_number, b, unit_id])
+        sub = _texel_subset(ts, np.arange(lo, hi))
+        fp = sample_footprint(sub, per_batch, rng, include_center=(b == 0))
+        u, u_mix = stratified_first_uniforms(hi - lo, per_batch, rng)
+        k = (hi - lo) * per_batch
+        values, st = tracer.trace(fp.position.reshape(k, 3), fp.normal.reshape(k, 3),
+                                  np.repeat(states[lo:hi], per_batch), u.reshape(k, 2),
+                                  u_mix.reshape(k), rng)
+        return unit_id, values.reshape(hi - lo, per_batch, 3).sum(axis=1, dtype=np.float64), st
+
+    total = len(units)
+    progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
+
+    def collect(done, outcome):
+        unit_id, part, st = outcome
+        b, lo, hi = units[unit_id]
+        sums[b, lo:hi] = part
+        stats.add(st)
+        progress.update(done / total, f"{name}: {done}/{total} work units")
+
+    if int(threads) <= 1:
+        for done, unit_id in enumerate(range(total), start=1):
+            collect(done, run(unit_id))
+    else:
+        with ThreadPoolExecutor(max_workers=int(threads)) as pool:
+            futures = [pool.submit(run, u) for u in range(total)]
+            try:
+                for done, future in enumerate(as_completed(futures), start=1):
+                    collect(done, future.result())
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+    batch_means = sums / per_batch
+    value = batch_means.mean(axis=0)
+    if B > 1:
+        stderr = batch_means.std(axis=0, ddof=1) / np.sqrt(B)
+    else:
+        stderr = np.full_like(value, np.nan)
+    image = np.zeros((R, R, 4), np.float32)
+    if n_tex:
+        rgb = ts.to_image(value.astype(np.float32))
+        filled_rgb, filled = dilate(rgb, ts.covered_mask(), int(settings.bake_margin), return_mask=True)
+        image[..., :3] = filled_rgb
+        image[..., 3] = filled.astype(np.float32)
+    return ObjectBake(name=name, texels=ts, triangles=tris, value=value.astype(np.float32),
+                      standard_error=stderr.astype(np.float32), image=image, samples=N, batches=B,
+                      stats=stats, seconds=time.perf_counter() - t0)
+
+
+def make_tracer(scene, settings, lmdp=None, caster=None):
+    """The :class:`IndirectTracer` (and guide) of ``settings.bake_mode`` for ``scene``."""
+    mode = settings.bake_mode
+    guide = gather = None
+    info = {}
+    if mode in ("GUIDED", "FINAL_GATHER"):
+        guide = build_guide(scene, lmdp)
+        info = {"same_scene": bool(guide.same_scene), "points": int(lmdp.states.n_points),
+                "strata": int(lmdp.states.n_strata), "cost_mode": lmdp.solution.cost_mode}
+        if mode == "FINAL_GATHER":
+            gather = build_gather(guide, lmdp)
+    tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
+                            guide_fraction=settings.guide_fraction, caster=caster)
+    return tracer, guide, info
+
+
+def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=BAKE_THREADS):
+    """Bake the lightmaps of the objects ``names`` of ``scene`` (module docstring).
+
+    scene     :class:`~lmdp_addon.scene.SceneArrays` to trace (with UVs)
+    names     object names to bake
+    settings  :class:`~lmdp_addon.settings.Settings` (bake_mode, bake_resolution, bake_samples,
+              bake_margin, guide_fraction, max_bounces, seed)
+    lmdp      anything with ``scene``, ``states``, ``dynamics``, ``solution`` (e.g.
+              ``pipeline.LMDPResult``): required by GUIDED and FINAL_GATHER
+    precompute_seconds  {'sample', 'build', 'solve'} wall times to report with the bake
+    Returns :class:`BakeResult`. Raises the errors of :func:`check_bake_inputs`, or ``Cancelled``.
+    """
+    progress = progress if progress is not None else Progress()
+    warnings = check_bake_inputs(scene, list(names), settings, lmdp)
+    t0 = time.perf_counter()
+    tracer, guide, info = make_tracer(scene, settings, lmdp)
+    setup = time.perf_counter() - t0
+    objects = []
+    for number, name in enumerate(names):
+        progress.begin(f"bake {name}")
+        ob = bake_object(tracer, scene, name, settings, object_number=number, guide=guide,
+                         progress=progress, threads=threads)
+        progress.end(f"{ob.n_texels} texels, {ob.stats.total_rays} rays in {ob.seconds:.2f} s "
+                     f"({ob.stats.total_rays / max(ob.seconds, 1e-9) / 1e6:.2f} Mrays/s)")
+        objects.append(ob)
+    seconds = dict(precompute_seconds or {})
+    seconds["bake_setup"] = setup
+    seconds["bake"] = time.perf_counter() - t0
+    return BakeResult(mode=settings.bake_mode, objects=objects, settings=settings.as_dict(),
+                      seconds=seconds, warnings=warnings, guide_info=info)

@@ -1,0 +1,570 @@
+"""Wavefront path tracer for indirect diffuse light at surface points (UNGUIDED, GUIDED, FINAL_GATHER).
+
+The quantity is the one of Cycles' ``bake(type='DIFFUSE', pass_filter={'INDIRECT'})``: at a
+shading point x with normal n,
+
+    I(x) = E_ind(x) / π = (1/π) ∫_{H(n)} L_r(h(x, ω), -ω) cos θ dω,                 (thesis eq. 2.7)
+
+the irradiance carried by light that has bounced at least once, without x's own albedo: the
+emission of the surface hit by the first ray and light escaping to the world straight from x are
+*direct* light and are left out, exactly as Cycles splits its passes. ``L_r(y)`` is the reflected
+radiance at y = h(x, ω): ``ρ(y) [D(y) + I(y)]`` with D the direct light (emitters and world) and
+I the indirect light at y, recursively.
+
+Estimator (per path, all paths of a batch advance together: "wavefront"; no Python loop over rays):
+
+* vertex 0 (the texel point) samples ω0 with pdf ``p0``; weight ``w0 = cos θ0 / (π p0)``;
+* at every later vertex y_k (k = 1 .. max_bounces) the throughput is ``β_k = β_{k-1} w_{k-1} ρ(y_k)``
+  and **next-event estimation** adds ``β_k · L_e cos θ_y cos θ_l / (π r² p_A)`` for one point on
+  the emitters, chosen with probability proportional to area x max-channel radiance (uniform on
+  the chosen triangle, ``p_A`` its area density), with a shadow ray; one-sided emitters (area
+  lights) count only on their front side, mesh emission on both (``SceneArrays``);
+* emitters hit by a sampled ray are *never* counted (NEE is their only estimator: no double
+  counting, no MIS needed); a uniform world is counted only through sampled rays that escape
+  from y_k (k >= 1), weight ``β_k w_k L_world``;
+* ``max_bounces`` = N keeps vertices y_1 .. y_N (NEE at each and the escape of y_N's ray), which
+  is what Cycles' ``max_bounces = N`` (with ``diffuse_bounces >= N``) bakes: Cycles' kernel uses
+  ``N + 1`` internally and stops shading at the vertex whose incoming bounce count reaches it;
+* Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
+  survivors divided by it (unbiased).
+
+Direction sampling at a vertex with shading normal n:
+
+* ``UNGUIDED``: cosine-weighted, ``p(ω) = cos θ / π``, so ``w = 1``;
+* ``GUIDED``: a one-sample mixture of the optimal policy and cosine sampling,
+
+      p(ω) = α g_s(ω) + (1 - α) max(cos θ, 0) / π,
+      g_s(ω) = u*(k(ω) | s) · S / (2π)   for ω in stratum k of s's hemisphere, 0 below it,
+
+  where s is the nearest compatible state point (same object, facing the same side), u*(k|s) its
+  directional optimal policy (``policy.stratum_policy``) and the S strata of s's Shirley–Chiu
+  grid have solid angle 2π/S each (equal-area map), so g_s is a normalised piecewise-constant
+  density. A guide sample picks stratum k by u*(·|s), then a uniform point of the stratum's cell
+  of the unit square (uniform in solid angle within the stratum). Directions below the shading
+  point's own horizon get ``w = 0`` while the pdf stays exact, so the estimator is unbiased for
+  every α < 1 (α = 1 leaves strata with u* = 0 unsampled). Vertices without a compatible state
+  use cosine sampling (the choice depends only on the vertex, so the pdf stays consistent).
+  The guide at the texel uses u* over the surface states only (``columns='points'``: the light
+  wanted there arrives after a bounce); later vertices use ``'points+world'`` (emitters are
+  covered by NEE, the world by escaping rays);
+* ``FINAL_GATHER``: the first direction is drawn as in GUIDED; at its hit y_1 the PHYSICAL-mode
+  solution replaces the rest of the path: ``L_r(y_1) ≈ ρ(y_1) ẑ(y_1)`` with ẑ the irradiance
+  ``z/ρ`` of the nearby compatible states, interpolated (``GatherField``). Hits without a nearby
+  compatible state continue as a GUIDED path. Biased by the discretisation of the solution.
+
+Arrays are float32 in the hot loop (positions of scenes of metres keep ~1e-7 relative precision,
+ray origins are offset by ``RayCaster.offset()``, 1e-5 of the scene size).
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .hemisphere import concentric_square_to_disk, square_to_hemisphere, stratum_of_local_direction
+from .raycast import RayCaster
+
+INV_PI = 1.0 / np.pi
+MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
+
+
+@dataclass
+class TraceStats:
+    """Work done by :meth:`IndirectTracer.trace` (summed over calls)."""
+
+    paths: int = 0
+    rays: int = 0             #: closest-hit rays
+    shadow_rays: int = 0      #: NEE occlusion rays
+    vertices: int = 0         #: path vertices shaded (y_1, y_2, ...)
+    guided_vertices: int = 0  #: vertices that had a compatible state (GUIDED / FINAL_GATHER)
+    gathered: int = 0         #: FINAL_GATHER paths ended by the solution at y_1
+    gather_fallback: int = 0  #: FINAL_GATHER paths continued by path tracing (no state near y_1)
+
+    def add(self, other):
+        for name in self.__dataclass_fields__:
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        return self
+
+    @property
+    def total_rays(self):
+        return self.rays + self.shadow_rays
+
+    def as_dict(self):
+        return {name: int(getattr(self, name)) for name in self.__dataclass_fields__}
+
+
+# -- the guide --------------------------------------------------------------------------------
+
+@dataclass
+class StateGuide:
+    """The optimal policy of the states as a sampling density (see the module docstring).
+
+    locator          ``dynamics.StateLocator`` of the states (nearest compatible state point)
+    frames           (m, 3, 3) float64 tangent frames of the states (rows t, b, n)
+    first, later     (m, S) u*(k|s) for the texel vertex (columns 'points') and later vertices
+                     ('points+world'); each row sums to 1
+    strata_u, strata_v  the hemisphere grid of the states
+    same_scene       True when the traced scene is the one the states were sampled on (then
+                     triangle indices agree and front hits use the fast tabulated lookup)
+    object_map       (O_traced,) int: the states' object index of each traced object (-1: none),
+                     used when ``same_scene`` is False (objects matched by name)
+    """
+
+    locator: object
+    frames: np.ndarray
+    first: np.ndarray
+    later: np.ndarray
+    strata_u: int
+    strata_v: int
+    same_scene: bool = True
+    object_map: np.ndarray = None
+    cdf_first: np.ndarray = field(init=False, repr=False)
+    cdf_later: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.frames = np.asarray(self.frames, dtype=np.float64)
+        self.first = _normalised_rows(self.first)
+        self.later = _normalised_rows(self.later)
+        self.cdf_first = _row_cdf(self.first)
+        self.cdf_later = _row_cdf(self.later)
+
+    @property
+    def n_strata(self):
+        return self.strata_u * self.strata_v
+
+    def states_at(self, positions, side_normals, objects):
+        """Nearest compatible state of arbitrary surface points (exact tree query); -1 if none."""
+        objects = np.asarray(objects)
+        if len(objects) == 0:
+            return np.zeros(0, dtype=np.int64)
+        if self.object_map is not None:
+            objects = np.where(objects >= 0, self.object_map[np.maximum(objects, 0)], -1)
+        return self.locator.locate(np.asarray(positions, dtype=np.float64),
+                                   np.asarray(side_normals, dtype=np.float64), objects, workers=1)
+
+    def states_at_hits(self, tri, bu, bv, positions, side_normals, front, objects):
+        """Nearest compatible state of ray hits (-1: none).
+
+        On the scene the states were sampled on, only front hits on state-carrying triangles
+        have one (the tabulated ``locate_front``): back faces and other geometry carry no states.
+        On another scene every hit is looked up exactly (objects matched by name).
+        """
+        out = np.full(len(tri), -1, dtype=np.int64)
+        if len(tri) == 0:
+            return out
+        if self.same_scene:
+            carrier = front & (self.locator.gu[tri] > 0) if not self.locator.exact else front
+            if np.any(carrier):
+                out[carrier] = self.locator.locate_front(tri[carrier], bu[carrier], bv[carrier],
+                                                         positions[carrier].astype(np.float64), workers=1)
+            return out
+        return self.states_at(positions, side_normals, objects)
+
+    def sample(self, states, u, first):
+        """World directions drawn from g_s for ``states (k,)`` with uniforms ``u (k, 2)``."""
+        prob = self.first if first else self.later
+        cdf = self.cdf_first if first else self.cdf_later
+        S = self.n_strata
+        rows = cdf[states]
+        k = np.minimum((rows <= u[:, :1]).sum(axis=1), S - 1)
+        lo = np.where(k > 0, rows[np.arange(len(k)), np.maximum(k - 1, 0)], 0.0)
+        p = prob[states, k]
+        t = np.clip((u[:, 0] - lo) / np.where(p > 0, p, 1.0), 0.0, 1.0 - 1e-7)
+        su = (k // self.strata_v + t) / self.strata_u
+        sv = (k % self.strata_v + u[:, 1]) / self.strata_v
+        local = square_to_hemisphere(su, sv)
+        return np.einsum("ki,kij->kj", local, self.frames[states])
+
+    def density(self, states, directions, first):
+        """g_s(ω) (k,) for world directions ``(k, 3)``: u*(k|s) S / 2π, 0 below s's horizon."""
+        prob = self.first if first else self.later
+        local = np.einsum("kij,kj->ki", self.frames[states], directions)
+        k = stratum_of_local(local, self.strata_u, self.strata_v)
+        g = prob[states, np.maximum(k, 0)] * (self.n_strata / (2.0 * np.pi))
+        return np.where(k >= 0, g, 0.0)
+
+
+def stratum_of_local(local, strata_u, strata_v):
+    """Stratum of local directions ``(k, 3)`` (-1 for z <= 0), as
+    ``hemisphere.stratum_of_local_direction`` but with one arctangent of a ratio in [-1, 1]
+    per direction instead of ``arctan2`` and a four-way select (the hot loop calls it per vertex).
+
+    Inverse of the concentric map: for a disk point (x, y) with |x| >= |y|, ``a = sign(x) r``
+    and ``b = a (4/π) atan(y/x)``; otherwise ``b = sign(y) r`` and ``a = b (4/π) atan(x/y)``.
+    """
+    z = local[:, 2]
+    s = np.sqrt(1.0 + np.maximum(z, 0.0))
+    x = local[:, 0] / s
+    y = local[:, 1] / s
+    r = np.sqrt(x * x + y * y)
+    xa = np.abs(x) >= np.abs(y)
+    num = np.where(xa, y, x)
+    den = np.where(xa, x, y)
+    t = np.arctan(num / np.where(den != 0, den, 1.0)) * (4.0 / np.pi)
+    major = np.where(den >= 0, r, -r)
+    a = np.where(xa, major, major * t)
+    b = np.where(xa, major * t, major)
+    iu = np.clip(((a + 1.0) * 0.5 * strata_u).astype(np.int64), 0, strata_u - 1)
+    iv = np.clip(((b + 1.0) * 0.5 * strata_v).astype(np.int64), 0, strata_v - 1)
+    return np.where(z > 0, iu * strata_v + iv, -1)
+
+
+def _normalised_rows(p):
+    p = np.clip(np.asarray(p, dtype=np.float64), 0.0, None)
+    s = p.sum(axis=1, keepdims=True)
+    return np.where(s > 0, p / np.where(s > 0, s, 1.0), 1.0 / p.shape[1])
+
+
+def _row_cdf(p):
+    cdf = np.cumsum(p, axis=1)
+    cdf[:, -1] = 1.0
+    return cdf
+
+
+# -- final gather ------------------------------------------------------------------------------
+
+@dataclass
+class GatherField:
+    """Irradiance/π ẑ = z/ρ of the PHYSICAL solution, interpolated between states.
+
+    ``value_at(...)`` returns (k, 3) ẑ at surface points (NaN where no compatible state is
+    near): inverse-squared-distance weights over the ``neighbours`` nearest compatible states
+    of the same object (6-D distance of ``StateLocator``: position and α·normal). For front hits
+    on state-carrying triangles of the solved scene, the value is tabulated on the locator's
+    per-triangle grid (cell centres, a quarter of the point spacing).
+    """
+
+    locator: object
+    irradiance: np.ndarray          #: (m, 3) z/ρ of every state point (W / sr m²)
+    neighbours: int = 8
+    same_scene: bool = True
+    object_map: np.ndarray = None
+    table: np.ndarray = None        #: (cells, 3) tabulated ẑ (NaN: none)
+
+    def __post_init__(self):
+        self.irradiance = np.asarray(self.irradiance, dtype=np.float64)
+        if self.table is None and self.same_scene and not self.locator.exact and len(self.locator.grid_point):
+            self.table = self._tabulate()
+
+    def _tabulate(self):
+        """ẑ at the centre of every grid cell that has a nearest compatible state."""
+        loc = self.locator
+        scene = loc.scene
+        c = scene.corners()
+        sizes = loc.gu * loc.gv
+        tri = np.repeat(np.arange(scene.n_triangles), sizes)
+        cell = np.arange(len(tri)) - np.repeat(loc.grid_offset, sizes)
+        table = np.full((len(tri), 3), np.nan)
+        sel = np.flatnonzero(loc.grid_point >= 0)
+        t, gv = tri[sel], loc.gv[tri[sel]]
+        u = (cell[sel] // gv + 0.5) / loc.gu[t]
+        v = (cell[sel] % gv + 0.5) / gv
+        pos = c[t, 0] + u[:, None] * (c[t, 1] - c[t, 0]) + v[:, None] * (c[t, 2] - c[t, 0])
+        table[sel] = self._interpolate(pos, loc.face_normals[t], scene.triangle_object[t])
+        return table
+
+    def _interpolate(self, positions, side_normals, objects):
+        loc = self.locator
+        out = np.full((len(positions), 3), np.nan)
+        for o, tree in loc.trees.items():  # loop over objects, not points
+            sel = np.flatnonzero(objects == o)
+            if len(sel) == 0:
+                continue
+            k = min(self.neighbours, tree.n)
+            q = np.hstack([positions[sel], loc.alpha[o] * side_normals[sel]])
+            d, nn = tree.query(q, k=k, workers=1)
+            if k == 1:
+                d, nn = d[:, None], nn[:, None]
+            ids = loc.index[o][nn]
+            facing = np.einsum("kij,kj->ki", loc.normals[ids], side_normals[sel]) > 0.0
+            w = np.where(facing, 1.0 / np.maximum(d, 1e-9 * loc.alpha[o]) ** 2, 0.0)
+            wsum = w.sum(axis=1)
+            val = np.einsum("ki,kic->kc", w, self.irradiance[ids]) / np.where(wsum > 0, wsum, 1.0)[:, None]
+            out[sel] = np.where((wsum > 0)[:, None], val, np.nan)
+        return out
+
+    def value_at(self, tri, bu, bv, positions, side_normals, front, objects):
+        out = np.full((len(tri), 3), np.nan)
+        fast = np.zeros(len(tri), dtype=bool)
+        if self.table is not None:
+            loc = self.locator
+            fast = front & (loc.gu[tri] > 0)
+            if np.any(fast):
+                t = tri[fast]
+                gu, gv = loc.gu[t], loc.gv[t]
+                i = np.minimum((bu[fast] * gu).astype(np.int64), gu - 1)
+                j = np.minimum((bv[fast] * gv).astype(np.int64), gv - 1)
+                out[fast] = self.table[loc.grid_offset[t] + i * gv + j]
+        slow = ~fast
+        if np.any(slow):
+            obj = objects[slow]
+            if self.object_map is not None:
+                obj = np.where(obj >= 0, self.object_map[np.maximum(obj, 0)], -1)
+            out[slow] = self._interpolate(positions[slow].astype(np.float64),
+                                          side_normals[slow].astype(np.float64), obj)
+        return out
+
+
+# -- the tracer --------------------------------------------------------------------------------
+
+class IndirectTracer:
+    """Traces batches of paths from surface points and returns their indirect-light estimates.
+
+    scene           the :class:`~lmdp_addon.scene.SceneArrays` that is traced
+    mode            'UNGUIDED', 'GUIDED' or 'FINAL_GATHER'
+    max_bounces     N: path vertices y_1..y_N after the shading point (Cycles' max_bounces)
+    guide           :class:`StateGuide` (GUIDED, FINAL_GATHER)
+    gather          :class:`GatherField` (FINAL_GATHER)
+    guide_fraction  α of the mixture
+    rr_start        first vertex index at which Russian roulette may end a path
+    """
+
+    def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
+                 guide_fraction=0.5, rr_start=3, caster=None):
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
+        if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
+            raise ValueError(f"{mode} needs a StateGuide")
+        if mode == "FINAL_GATHER" and gather is None:
+            raise ValueError("FINAL_GATHER needs a GatherField")
+        self.scene = scene
+        self.mode = mode
+        self.max_bounces = int(max_bounces)
+        self.guide = guide if mode != "UNGUIDED" else None
+        self.gather = gather if mode == "FINAL_GATHER" else None
+        self.alpha = float(np.clip(guide_fraction, 0.0, 1.0)) if self.guide is not None else 0.0
+        self.rr_start = int(rr_start)
+        self.caster = caster or RayCaster(scene)
+        self.eps = np.float32(self.caster.offset())
+        normals, areas = scene.triangle_geometry()
+        T = scene.n_triangles
+        self.face_normals = normals.astype(np.float32)
+        self.albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
+        self.objects = scene.triangle_object
+        self.world = np.asarray(scene.world_radiance, dtype=np.float32)
+        self.world_lit = bool(np.any(self.world > 0))
+        # Emitter sampling table: triangles with probability ∝ area x max-channel radiance.
+        em = np.flatnonzero(scene.is_emissive() & (areas > 0))
+        weight = areas[em] * scene.triangle_emission[em].max(axis=1)
+        self.n_emitter_triangles = len(em)
+        if len(em):
+            cdf = np.cumsum(weight)
+            self.emitter_cdf = cdf / cdf[-1]
+            prob = weight / cdf[-1]
+            c = scene.corners()[em]
+            self.emitter_corner = c[:, 0].astype(np.float32)
+            self.emitter_edge1 = (c[:, 1] - c[:, 0]).astype(np.float32)
+            self.emitter_edge2 = (c[:, 2] - c[:, 0]).astype(np.float32)
+            self.emitter_normal = normals[em].astype(np.float32)
+            self.emitter_two_sided = scene.triangle_emission_two_sided[em]
+            self.emitter_radiance = scene.triangle_emission[em].astype(np.float32)
+            self.emitter_pdf_area = (prob / areas[em]).astype(np.float32)  #: p_A of a point on it
+        # Per scene triangle, for rays that hit emitters: light-sampling p_A (0: not an emitter).
+        self.triangle_emitter_pdf_area = np.zeros(T, np.float32)
+        if len(em):
+            self.triangle_emitter_pdf_area[em] = self.emitter_pdf_area
+        self.triangle_two_sided = scene.triangle_emission_two_sided
+        self.scene_emission = scene.triangle_emission.astype(np.float32)
+        self.tri_count = T
+
+    # -- direction sampling ----------------------------------------------------------------------
+    @staticmethod
+    def _cosine_directions(normals, u):
+        """Cosine-weighted directions about ``normals (k, 3)`` from uniforms ``u (k, 2)``."""
+        x, y = concentric_square_to_disk(u[:, 0], u[:, 1])
+        z = np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
+        t, b = _tangents(normals)
+        return (x[:, None] * t + y[:, None] * b + z[:, None] * normals).astype(np.float32)
+
+    def _sample(self, normals, states, u, u_mix, first):
+        """Directions ``d``, weights ``w = cos θ / (π p(d))`` and ``cos θ`` at vertices."""
+        if self.guide is None:
+            d = self._cosine_directions(normals, u)
+            cos = np.einsum("ij,ij->i", normals, d)
+            return d, np.ones(len(normals), np.float32), cos
+        has = states >= 0
+        use_guide = has & (u_mix < self.alpha)
+        d = np.empty((len(normals), 3), np.float32)
+        cos_sel = ~use_guide
+        if np.any(cos_sel):
+            d[cos_sel] = self._cosine_directions(normals[cos_sel], u[cos_sel])
+        if np.any(use_guide):
+            d[use_guide] = self.guide.sample(states[use_guide], u[use_guide], first)
+        pdf = self._pdf(normals, states, d, first)
+        cos = np.einsum("ij,ij->i", normals, d)
+        w = np.where((cos > 0) & (pdf > 0), cos * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
+        return d, w.astype(np.float32), cos
+
+    def _pdf(self, normals, states, d, first):
+        """Sampling density (per steradian) of directions ``d`` at vertices with these states."""
+        cos = np.maximum(np.einsum("ij,ij->i", normals, d), 0.0) * INV_PI
+        if self.guide is None:
+            return cos
+        pdf = np.array(cos, dtype=np.float64)
+        has = np.flatnonzero(states >= 0)
+        if len(has):
+            g = self.guide.density(states[has], d[has].astype(np.float64), first)
+            pdf[has] = self.alpha * g + (1.0 - self.alpha) * cos[has]
+        return pdf
+
+    # -- next-event estimation -------------------------------------------------------------------
+    def _direct(self, points, normals, rng, stats):
+        """(k, 3) light-sampling half of the MIS estimate of D_e(y) = (1/π) ∫ L_e cos θ dω.
+
+        One point on the emitters (triangle ∝ area x max radiance, uniform on it) with the
+        weight ``q / (p_L + q)``: ``p_L = p_A r² / cos θ_l`` is the light-sampling density per
+        steradian and ``q = cos θ_y / π`` the cosine density. The sampled-ray half
+        (:meth:`_emission_hits`) uses ``q / (p_L + q)`` with the same q, so the two weights sum to
+        one for every direction and the combination is unbiased whatever density drew the ray
+        (in GUIDED mode q is the cosine part of the mixture only: a cheaper, still exact,
+        partition of unity; Veach's balance heuristic when sampling is purely cosine).
+        """
+        k = len(points)
+        out = np.zeros((k, 3), np.float32)
+        if self.n_emitter_triangles == 0 or k == 0:
+            return out
+        r = rng.random((k, 3), dtype=np.float32)
+        e = np.minimum(np.searchsorted(self.emitter_cdf, r[:, 0], side="right"), self.n_emitter_triangles - 1)
+        s = np.sqrt(r[:, 1])
+        b1 = (s * (1.0 - r[:, 2]))[:, None]
+        b2 = (s * r[:, 2])[:, None]
+        q = self.emitter_corner[e] + b1 * self.emitter_edge1[e] + b2 * self.emitter_edge2[e]
+        # Direction and distance from the offset origin itself: from the surface point, a shadow
+        # ray at a grazing angle would meet the emitter's plane before ``dist`` (close emitters).
+        origin = points + self.eps * normals
+        to = q - origin
+        r2 = np.einsum("ij,ij->i", to, to)
+        dist = np.sqrt(r2)
+        dl = to / np.maximum(dist, 1e-30)[:, None]
+        cos_y = np.einsum("ij,ij->i", normals, dl)
+        cos_l = -np.einsum("ij,ij->i", self.emitter_normal[e], dl)
+        cos_l = np.where(self.emitter_two_sided[e], np.abs(cos_l), cos_l)
+        ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (r2 > 0))
+        if len(ok) == 0:
+            return out
+        tmax = np.maximum(dist[ok] - self.eps, 0.0)
+        blocked = self.caster.occluded(origin[ok], dl[ok], tmax)
+        stats.shadow_rays += len(ok)
+        vis = ok[~blocked]
+        if len(vis) == 0:
+            return out
+        p_light = self.emitter_pdf_area[e[vis]] * r2[vis] / cos_l[vis]
+        q = cos_y[vis] * INV_PI
+        out[vis] = self.emitter_radiance[e[vis]] * (q / (p_light + q))[:, None]
+        return out
+
+    def _emission_hits(self, d, tri, dist, cos_from):
+        """(k, 3) BSDF-sampling half of the MIS estimate for rays (from a vertex y_k, k >= 1)
+        that hit an emitter: ``L_e · q / (q + p_L)``, to be multiplied by ``β w``
+        (``cos_from``: cos θ of the ray at the vertex it left; q = cos θ / π, see ``_direct``)."""
+        out = np.zeros((len(tri), 3), np.float32)
+        if self.n_emitter_triangles == 0:
+            return out
+        sel = np.flatnonzero(self.triangle_emitter_pdf_area[tri] > 0)
+        if len(sel) == 0:
+            return out
+        t = tri[sel]
+        cos_l = -np.einsum("ij,ij->i", self.face_normals[t], d[sel])
+        cos_l = np.where(self.triangle_two_sided[t], np.abs(cos_l), cos_l)
+        lit = cos_l > 0
+        sel, t, cos_l = sel[lit], t[lit], cos_l[lit]
+        p_light = self.triangle_emitter_pdf_area[t] * dist[sel] ** 2 / cos_l
+        q = cos_from[sel] * INV_PI
+        out[sel] = self.scene_emission[t] * (q / (q + p_light))[:, None]
+        return out
+
+    # -- the wavefront loop ----------------------------------------------------------------------
+    def trace(self, points, normals, states, u_first, u_mix, rng, objects=None):
+        """Estimates I(x) = E_ind/π for paths starting at ``points (n, 3)`` on surfaces with
+        normals ``normals (n, 3)`` (the side that is baked).
+
+        states   (n,) nearest compatible state of each start point (-1: none; ignored UNGUIDED)
+        u_first  (n, 2) uniforms of the first direction (stratified by the caller)
+        u_mix    (n,) uniforms choosing guide vs cosine at the first vertex
+        rng      numpy Generator for everything else
+        Returns ``(values (n, 3) float32, TraceStats)``; the mean of the values is unbiased for
+        I (biased by the solution's discretisation in FINAL_GATHER).
+        """
+        n = len(points)
+        stats = TraceStats(paths=n)
+        L = np.zeros((n, 3), np.float32)
+        if n == 0:
+            return L, stats
+        idx = np.arange(n)
+        pos = np.ascontiguousarray(points, dtype=np.float32)
+        nrm = np.ascontiguousarray(normals, dtype=np.float32)
+        states = np.asarray(states, dtype=np.int64) if self.guide is not None else np.full(n, -1)
+        d, w, cos_prev = self._sample(nrm, states, np.asarray(u_first, np.float64), np.asarray(u_mix), first=True)
+        beta = np.ones((n, 3), np.float32)
+        keep = w > 0
+        idx, pos, nrm, d, w, cos_prev, beta = (a[keep] for a in (idx, pos, nrm, d, w, cos_prev, beta))
+        bounce = 1
+        while len(idx):
+            origin = pos + self.eps * nrm
+            tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
+            stats.rays += len(idx)
+            hit = tri >= 0
+            if bounce >= 2:
+                # Light found by the direction sampled at y_{bounce-1}: world and emitters (MIS).
+                bw = beta * w[:, None]
+                if self.world_lit and not np.all(hit):
+                    miss = ~hit
+                    L[idx[miss]] += bw[miss] * self.world
+                h = np.flatnonzero(hit)
+                if len(h):
+                    L[idx[h]] += bw[h] * self._emission_hits(d[h], tri[h], dist[h], cos_prev[h])
+            if bounce > self.max_bounces:
+                break
+            idx, origin, d, w, beta = idx[hit], origin[hit], d[hit], w[hit], beta[hit]
+            tri, dist, bu, bv = tri[hit], dist[hit], bu[hit], bv[hit]
+            pos = origin + d * dist[:, None]
+            ng = self.face_normals[tri]
+            front = np.einsum("ij,ij->i", ng, d) < 0
+            nrm = np.where(front[:, None], ng, -ng)
+            beta = beta * (w[:, None] * self.albedo[tri])
+            stats.vertices += len(idx)
+            objs = self.objects[tri]
+            if bounce == 1 and self.gather is not None:
+                value = self.gather.value_at(tri, bu, bv, pos, nrm, front, objs)
+                done = ~np.isnan(value[:, 0])
+                L[idx[done]] += beta[done] * value[done].astype(np.float32)
+                stats.gathered += int(done.sum())
+                stats.gather_fallback += int((~done).sum())
+                live = ~done
+                idx, pos, nrm, beta, tri, bu, bv, front, objs = (
+                    a[live] for a in (idx, pos, nrm, beta, tri, bu, bv, front, objs))
+            alive = np.any(beta > 0, axis=1)
+            if not np.all(alive):
+                idx, pos, nrm, beta, tri, bu, bv, front, objs = (
+                    a[alive] for a in (idx, pos, nrm, beta, tri, bu, bv, front, objs))
+            if len(idx) == 0:
+                break
+            vstates = np.full(len(idx), -1, dtype=np.int64)
+            if self.guide is not None:
+                vstates = self.guide.states_at_hits(tri, bu, bv, pos, nrm, front, objs)
+                stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
+            L[idx] += beta * self._direct(pos, nrm, rng, stats)
+            if bounce >= self.rr_start:
+                q = np.minimum(beta.max(axis=1), 1.0)
+                survive = rng.random(len(idx), dtype=np.float32) < q
+                beta = beta[survive] / q[survive, None]
+                idx, pos, nrm, vstates = idx[survive], pos[survive], nrm[survive], vstates[survive]
+                if len(idx) == 0:
+                    break
+            u = rng.random((len(idx), 3))
+            d, w, cos_prev = self._sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
+            keep = w > 0
+            if not np.all(keep):
+                idx, pos, nrm, d, w, cos_prev, beta = (a[keep] for a in (idx, pos, nrm, d, w, cos_prev, beta))
+            bounce += 1
+        return L, stats
+
+
+def _tangents(n):
+    """Tangent and bitangent (k, 3) of unit normals, Duff et al.'s branchless frame."""
+    n = np.asarray(n)
+    nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+    sign = np.where(nz >= 0.0, 1.0, -1.0).astype(n.dtype)
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    t = np.stack([1.0 + sign * nx * nx * a, sign * b, -sign * nx], axis=1)
+    bt = np.stack([b, sign + ny * ny * a, -ny], axis=1)
+    return t, bt

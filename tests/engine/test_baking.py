@@ -1,0 +1,219 @@
+"""Bake orchestration (lmdp_addon.baking): texels, batches, determinism, errors, cancellation."""
+import numpy as np
+import pytest
+
+from lmdp_addon import baking, pipeline, scenes
+from lmdp_addon.errors import Cancelled, SceneError, StageOrderError
+from lmdp_addon.progress import Progress
+from lmdp_addon.settings import Settings
+from lmdp_addon.texels import rasterize_texels
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    return scenes.build_scene_arrays("CORNELL_BOX")
+
+
+@pytest.fixture(scope="module")
+def cornell_solved(cornell):
+    return pipeline.run_all(cornell, Settings(point_count=512))
+
+
+def small(**kw):
+    base = dict(bake_mode="UNGUIDED", bake_resolution=16, bake_samples=8, bake_margin=2)
+    base.update(kw)
+    return Settings(**base)
+
+
+def test_texels_are_the_texels_module_on_the_object_triangles(cornell):
+    index = cornell.object_names.index("TallBox")
+    ts, tris = baking.object_texels(cornell, index, 32)
+    normals, _ = cornell.triangle_geometry()
+    mask = cornell.triangle_object == index
+    ref = rasterize_texels(cornell.triangle_uv[mask], cornell.corners()[mask], normals[mask], 32)
+    np.testing.assert_array_equal(ts.row, ref.row)
+    np.testing.assert_array_equal(ts.col, ref.col)
+    np.testing.assert_allclose(ts.position, ref.position)
+    assert np.all(cornell.triangle_object[tris[ts.triangle]] == index)
+
+
+def test_bake_image_layout_margin_and_stats(cornell):
+    r = baking.bake(cornell, ["Floor", "TallBox"], small(bake_margin=3))
+    assert [o.name for o in r.objects] == ["Floor", "TallBox"]
+    box = r.object("TallBox")
+    assert box.image.shape == (16, 16, 4) and box.image.dtype == np.float32
+    covered = box.texels.covered_mask()
+    filled = box.image[..., 3] > 0
+    assert np.all(filled[covered]) and filled.sum() > covered.sum()
+    np.testing.assert_allclose(box.image[box.texels.row, box.texels.col, :3], box.value)
+    assert box.image_name == "TallBox_lmdp_indirect"
+    stats = r.stats()
+    assert stats["mode"] == "UNGUIDED" and stats["settings"]["bake_samples"] == 8
+    s = stats["objects"]["Floor"]
+    assert s["texels"] == 256 and s["samples"] == 8 and s["paths"] == 256 * 8
+    assert s["rays"] == s["closest_hit_rays"] + s["shadow_rays"] > s["paths"]
+    assert s["seconds"]["bake"] > 0
+    assert "bake" in r.summary()
+
+
+def test_bake_is_deterministic_for_a_seed_and_independent_of_threads(cornell):
+    a = baking.bake(cornell, ["Floor"], small(seed=3), threads=1).objects[0]
+    b = baking.bake(cornell, ["Floor"], small(seed=3), threads=2).objects[0]
+    c = baking.bake(cornell, ["Floor"], small(seed=4), threads=2).objects[0]
+    np.testing.assert_array_equal(a.image, b.image)
+    assert not np.array_equal(a.image, c.image)
+
+
+def test_standard_error_predicts_the_seed_to_seed_spread(cornell):
+    """Two independent bakes differ by sqrt(se1² + se2²) per texel: the batch-based standard
+    error is the real error. The mean of d²/(se1² + se2²) over n texels is 1 ± a few / sqrt(n)
+    for Gaussian texel errors; heavy-tailed paths make it noisier, so the bound is a factor 2."""
+    s1 = small(bake_resolution=16, bake_samples=32, seed=1)
+    s2 = small(bake_resolution=16, bake_samples=32, seed=2)
+    a = baking.bake(cornell, ["Floor"], s1).objects[0]
+    b = baking.bake(cornell, ["Floor"], s2).objects[0]
+    assert a.batches == 8
+    d2 = (a.value.astype(float) - b.value) ** 2
+    v = a.standard_error.astype(float) ** 2 + b.standard_error.astype(float) ** 2
+    lit = v > 0  # texels under the boxes get no light at all
+    ratio = np.median(d2[lit] / v[lit])
+    # median of chi²(1) is 0.455 (t² with 14 degrees of freedom: 0.48)
+    assert 0.455 / 2 < ratio < 0.455 * 2, ratio
+
+
+def test_batches_divide_the_samples():
+    assert baking.batch_count(64) == 8
+    assert baking.batch_count(12) == 6
+    assert baking.batch_count(7) == 7
+    assert baking.batch_count(11) == 1
+    assert baking.batch_count(1) == 1
+
+
+def test_stratified_first_uniforms_are_stratified():
+    rng = np.random.default_rng(0)
+    u, mix = baking.stratified_first_uniforms(3, 16, rng)
+    assert u.shape == (3, 16, 2) and mix.shape == (3, 16)
+    for t in range(3):
+        # one sample in each of the 16 columns and each of the 16 rows of the unit square
+        assert len(np.unique(np.floor(u[t, :, 0] * 16))) == 16
+        assert len(np.unique(np.floor(u[t, :, 1] * 16))) == 16
+    np.testing.assert_allclose(baking.radical_inverse2([0, 1, 2, 3, 5]), [0, 0.5, 0.25, 0.75, 0.625])
+
+
+class CancelAfter(Progress):
+    def __init__(self, n):
+        super().__init__()
+        self.n = n
+        self.calls = 0
+
+    def should_cancel(self):
+        self.calls += 1
+        return self.calls > self.n
+
+
+def test_cancel_stops_between_work_units(cornell, monkeypatch):
+    monkeypatch.setattr(baking, "PATHS_PER_UNIT", 256)
+    progress = CancelAfter(3)
+    with pytest.raises(Cancelled):
+        baking.bake(cornell, ["Floor"], small(bake_resolution=32), progress=progress)
+    assert progress.calls == 4
+
+
+# -- bad input ---------------------------------------------------------------------------------------
+
+def test_bad_resolution_samples_and_bounces(cornell):
+    with pytest.raises(SceneError, match="resolution must be at least 1"):
+        baking.check_bake_inputs(cornell, ["Floor"], small(bake_resolution=0))
+    with pytest.raises(SceneError, match="samples must be at least 1"):
+        baking.check_bake_inputs(cornell, ["Floor"], small(bake_samples=0))
+    with pytest.raises(SceneError, match="bounces"):
+        baking.check_bake_inputs(cornell, ["Floor"], small(max_bounces=0))
+
+
+def test_missing_uv_map_names_the_objects(cornell):
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    scene.object_has_uv[[0, 5]] = False
+    with pytest.raises(SceneError, match=r"No UV map on Floor, TallBox: add one"):
+        baking.check_bake_inputs(scene, ["Floor", "TallBox", "Ceiling"], small())
+
+
+def overlapping(scene, name):
+    """Give every face of ``name`` the same chart: all its UVs overlap."""
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    mask = scene.triangle_object == scene.object_names.index(name)
+    uv = scene.triangle_uv[mask]
+    quad = np.array([[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]]], np.float32)
+    scene.triangle_uv[mask] = np.tile(quad, (len(uv) // 2, 1, 1))
+    return scene
+
+
+def test_overlapping_uvs_are_detected_and_named(cornell):
+    scene = overlapping(cornell, "TallBox")
+    count, example = baking.uv_overlaps(scene, scene.object_names.index("TallBox"), 16)
+    assert count == 256 and example is not None
+    with pytest.raises(SceneError, match=r"Overlapping UVs on TallBox \(256 texels"):
+        baking.check_bake_inputs(scene, ["Floor", "TallBox"], small())
+
+
+@pytest.mark.parametrize("name", ["Floor", "TallBox", "ShortBox", "LeftWall"])
+def test_demo_charts_do_not_overlap(cornell, name):
+    for R in (16, 64, 128):
+        assert baking.uv_overlaps(cornell, cornell.object_names.index(name), R)[0] == 0
+
+
+def test_uvs_outside_the_image_are_an_error(cornell):
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    mask = scene.triangle_object == 0
+    scene.triangle_uv[mask] += 5.0
+    with pytest.raises(SceneError, match="covers no texel"):
+        baking.check_bake_inputs(scene, ["Floor"], small())
+
+
+def test_no_light_is_an_error():
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    scene.triangle_emission[:] = 0.0
+    with pytest.raises(SceneError, match="no light to bake"):
+        baking.check_bake_inputs(scene, ["Floor"], small())
+
+
+def test_guided_modes_need_a_solution(cornell, cornell_solved):
+    for mode in ("GUIDED", "FINAL_GATHER"):
+        with pytest.raises(StageOrderError, match="Solve first"):
+            baking.check_bake_inputs(cornell, ["Floor"], small(bake_mode=mode))
+    assert baking.check_bake_inputs(cornell, ["Floor"], small(bake_mode="GUIDED"), cornell_solved) == []
+
+
+def test_final_gather_needs_physical_mode_and_the_same_scene(cornell):
+    thesis = pipeline.run_all(cornell, Settings(point_count=256, cost_mode="THESIS"))
+    with pytest.raises(SceneError, match="PHYSICAL"):
+        baking.check_bake_inputs(cornell, ["Floor"], small(bake_mode="FINAL_GATHER"), thesis)
+    physical = pipeline.run_all(cornell, Settings(point_count=256))
+    moved = scenes.build_scene_arrays("CORNELL_BOX")
+    moved.vertices[moved.triangles[moved.triangle_object == 5]] += 0.01
+    with pytest.raises(SceneError, match="scene changed"):
+        baking.check_bake_inputs(moved, ["Floor"], small(bake_mode="FINAL_GATHER"), physical)
+    warnings = baking.check_bake_inputs(moved, ["Floor"], small(bake_mode="GUIDED"), physical)
+    assert any("scene changed" in w for w in warnings)
+
+
+def test_guided_bake_of_a_changed_scene_uses_exact_lookups(cornell_solved):
+    moved = scenes.build_scene_arrays("CORNELL_BOX")
+    moved.vertices[:, 2] += 1e-3  # everything moved: the guide maps objects by name
+    r = baking.bake(moved, ["Floor"], small(bake_mode="GUIDED"), lmdp=cornell_solved)
+    assert r.guide_info["same_scene"] is False
+    assert r.objects[0].stats.guided_vertices > 0
+
+
+def test_objects_without_states_are_reported(cornell):
+    lmdp = pipeline.run_all(scenes.build_scene_arrays("CORNELL_BOX", selected=["Floor"]),
+                            Settings(point_count=128))
+    warnings = baking.check_bake_inputs(cornell, ["Floor", "TallBox"], small(bake_mode="GUIDED"), lmdp)
+    assert any("No states on TallBox" in w for w in warnings)
+
+
+def test_fingerprint_ignores_the_selection_only():
+    a = scenes.build_scene_arrays("CORNELL_BOX")
+    b = scenes.build_scene_arrays("CORNELL_BOX", selected=["Floor"])
+    assert baking.scene_fingerprint(a) == baking.scene_fingerprint(b)
+    b.triangle_albedo[0] *= 0.5
+    assert baking.scene_fingerprint(a) != baking.scene_fingerprint(b)

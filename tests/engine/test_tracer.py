@@ -1,0 +1,228 @@
+"""The wavefront tracer (lmdp_addon.tracer) against analytic indirect light.
+
+Tolerances are Monte Carlo bounds computed from the samples themselves: an estimate m of n
+independent path values with sample standard deviation s must lie within 5 s / sqrt(n) of the
+analytic value (plus the analytic model's own error where it has one, stated at the test).
+"""
+import numpy as np
+import pytest
+
+from lmdp_addon import pipeline, scenes
+from lmdp_addon.hemisphere import stratum_of_local_direction, tangent_frame
+from lmdp_addon.settings import Settings
+from lmdp_addon.tracer import IndirectTracer, StateGuide, TraceStats, stratum_of_local
+from lmdp_addon.baking import build_guide, build_gather
+
+K = 5.0  # standard errors
+
+
+def assert_within(values, expected, extra=0.0, k=K):
+    values = np.asarray(values, dtype=np.float64)
+    n = len(values)
+    mean = values.mean(axis=0)
+    se = values.std(axis=0, ddof=1) / np.sqrt(n)
+    bound = k * se + extra
+    assert np.all(np.abs(mean - expected) <= bound), f"mean {mean} expected {expected} bound {bound}"
+    return mean, se
+
+
+def trace_at(tracer, point, normal, n, seed=0, state=-1):
+    rng = np.random.default_rng(seed)
+    p = np.tile(np.asarray(point, dtype=np.float64), (n, 1))
+    nn = np.tile(np.asarray(normal, dtype=np.float64), (n, 1))
+    values, stats = tracer.trace(p, nn, np.full(n, state), rng.random((n, 2)), rng.random(n), rng)
+    return values, stats
+
+
+# -- scenes with a known answer ------------------------------------------------------------------
+
+SKY = 1.5
+PATCH_ALBEDO = (0.5, 0.6, 0.8)
+
+
+def patch_under_sky():
+    """A 1 m square patch (albedo ρ) facing down 1 m above a 4 cm receiver, uniform sky L.
+
+    The patch's underside sees the sky (the receiver's 0.0016 m² change that by < 1e-3 in
+    relative terms), so its radiance is ρ L and the receiver's indirect light is ρ L F, F the
+    point-to-parallel-square form factor. Nothing else bounces.
+    """
+    e, r = 0.5, 0.02
+    parts = [
+        scenes._quad_part("Receiver", [(-r, -r, 0), (r, -r, 0), (r, r, 0), (-r, r, 0)], (0.7, 0.7, 0.7)),
+        scenes._quad_part("Patch", [(-e, -e, 1), (-e, e, 1), (e, e, 1), (e, -e, 1)], PATCH_ALBEDO),
+    ]
+    return scenes.parts_to_scene_arrays(parts, world=(SKY, SKY, SKY))
+
+
+def expected_patch_indirect(offset=(0.0, 0.0)):
+    F = scenes.point_to_parallel_square_form_factor(1.0, 1.0, offset)
+    return np.asarray(PATCH_ALBEDO) * SKY * F
+
+
+def furnace(albedo=0.5, radiance=1.0):
+    """A closed unit cube whose inside walls both emit L (two-sided) and reflect ρ.
+
+    The radiance everywhere inside is L (1 + ρ + ρ² + ...); the indirect light at a wall point is
+    what has bounced at least once: L (ρ + ... + ρ^N) with N bounces.
+    """
+    box = scenes._box_part("Box", (0, 0, 0), (1, 1, 1), (albedo,) * 3)
+    inward = scenes.Part("Box", box.vertices, box.faces[:, ::-1], box.face_uv[:, ::-1], (albedo,) * 3,
+                         (radiance,) * 3)
+    return scenes.parts_to_scene_arrays([inward])
+
+
+@pytest.mark.parametrize("bounces", [1, 2, 8])
+def test_furnace_indirect_is_the_geometric_series(bounces):
+    scene = furnace()
+    tracer = IndirectTracer(scene, "UNGUIDED", max_bounces=bounces)
+    values, stats = trace_at(tracer, (0.1, 0.2, -0.5), (0, 0, 1), 100_000, seed=bounces)
+    expected = sum(0.5 ** k for k in range(1, bounces + 1))
+    assert_within(values[:, 0], expected)
+    # Russian roulette starts at vertex 3: at most one closest-hit ray per vertex, plus the last.
+    assert stats.rays <= stats.paths * (bounces + 1)
+    assert stats.vertices > 0 and stats.shadow_rays > 0
+
+
+def test_direct_light_is_excluded():
+    """Parallel squares: the receiver sees only the (black, emitting) square: no indirect light."""
+    scene = scenes.build_scene_arrays("PARALLEL_SQUARES")
+    tracer = IndirectTracer(scene, "UNGUIDED")
+    values, stats = trace_at(tracer, (0.1, 0.0, 0.0), (0, 0, 1), 20_000)
+    assert np.all(values == 0.0)
+    assert stats.rays > 0
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.015, -0.01)])
+def test_patch_under_sky_unguided(offset):
+    scene = patch_under_sky()
+    tracer = IndirectTracer(scene, "UNGUIDED", max_bounces=4)
+    values, _ = trace_at(tracer, (*offset, 0.0), (0, 0, 1), 200_000)
+    assert_within(values, expected_patch_indirect(offset), extra=1e-3 * expected_patch_indirect(offset))
+
+
+@pytest.fixture(scope="module")
+def solved_patch():
+    scene = patch_under_sky()
+    settings = Settings(point_count=512, cost_mode="PHYSICAL")
+    return scene, pipeline.run_all(scene, settings)
+
+
+def test_patch_under_sky_guided_is_unbiased(solved_patch):
+    scene, lmdp = solved_patch
+    guide = build_guide(scene, lmdp)
+    tracer = IndirectTracer(scene, "GUIDED", max_bounces=4, guide=guide, guide_fraction=0.7)
+    n = 200_000
+    state = guide.states_at(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0]))[0]
+    assert state >= 0
+    values, stats = trace_at(tracer, (0.0, 0.0, 0.0), (0, 0, 1), n, state=state)
+    assert_within(values, expected_patch_indirect(), extra=1e-3 * expected_patch_indirect())
+    assert stats.guided_vertices > 0
+
+
+def test_patch_under_sky_final_gather(solved_patch):
+    """FINAL_GATHER reads z/ρ of the patch states (their sky fraction, estimated by the dynamics'
+    rays): its bias here is the discretisation error of that fraction, measured against the
+    analytic value. The bound is the spread of z/ρ over the patch states it interpolates."""
+    scene, lmdp = solved_patch
+    guide = build_guide(scene, lmdp)
+    gather = build_gather(guide, lmdp)
+    tracer = IndirectTracer(scene, "FINAL_GATHER", guide=guide, gather=gather)
+    state = guide.states_at(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0]))[0]
+    values, stats = trace_at(tracer, (0.0, 0.0, 0.0), (0, 0, 1), 50_000, state=state)
+    assert stats.gathered == stats.vertices and stats.gather_fallback == 0  # every hit is on the patch
+    patch = lmdp.states.point_object == scene.object_names.index("Patch")
+    spread = gather.irradiance[patch].std(axis=0)
+    mean, _ = assert_within(values, expected_patch_indirect(),
+                            extra=np.asarray(PATCH_ALBEDO) * spread / np.sqrt(patch.sum()) * 5 + 1e-3)
+    assert stats.rays == stats.paths  # one ray per path
+
+
+# -- the guide's density ---------------------------------------------------------------------------
+
+def random_guide(strata_u=3, strata_v=5, m=4, seed=0):
+    rng = np.random.default_rng(seed)
+    S = strata_u * strata_v
+    u = rng.random((m, S)) ** 3
+    u[:, 2] = 0.0  # a stratum the guide never picks
+    normals = rng.normal(size=(m, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return StateGuide(locator=None, frames=tangent_frame(normals), first=u, later=u[::-1].copy(),
+                      strata_u=strata_u, strata_v=strata_v), normals
+
+
+def test_stratum_of_local_matches_the_hemisphere_module():
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(200_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for su, sv in ((4, 4), (3, 5), (8, 8), (1, 1)):
+        np.testing.assert_array_equal(stratum_of_local(d, su, sv), stratum_of_local_direction(d, su, sv))
+
+
+def test_guide_samples_follow_the_policy_and_the_density_integrates_to_one():
+    guide, normals = random_guide()
+    rng = np.random.default_rng(2)
+    S = guide.n_strata
+    for s in range(len(normals)):
+        n = 200_000
+        states = np.full(n, s)
+        d = guide.sample(states, rng.random((n, 2)), first=True)
+        local = np.einsum("ij,kj->ki", guide.frames[s], d)
+        k = stratum_of_local(local, guide.strata_u, guide.strata_v)
+        freq = np.bincount(k, minlength=S) / n
+        p = guide.first[s]
+        assert np.all(np.abs(freq - p) <= K * np.sqrt(p * (1 - p) / n) + 1e-12), (freq, p)
+        # ∫ g dω over the sphere by uniform sampling: 4π E[g] = 1.
+        w = rng.normal(size=(n, 3))
+        w /= np.linalg.norm(w, axis=1, keepdims=True)
+        g = guide.density(states, w, first=True) * 4 * np.pi
+        assert_within(g, 1.0)
+        # Within a stratum the samples are uniform in solid angle: the density at the samples
+        # equals u*(k) S / 2π.
+        np.testing.assert_allclose(guide.density(states, d, first=True), p[k] * S / (2 * np.pi), rtol=1e-9)
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.3, 0.9])
+def test_mixture_weights_have_expectation_one(alpha):
+    """E[cos/(π p)] = ∫ cos/π dω = 1 for the mixture pdf: the GUIDED direction sampling is
+    unbiased. The shading normal is tilted from the state's (directions below its horizon get
+    weight 0, the pdf stays exact)."""
+    guide, normals = random_guide(m=1, seed=3)
+    scene = scenes.build_scene_arrays("PARALLEL_SQUARES")
+    tracer = IndirectTracer(scene, "GUIDED", guide=guide, guide_fraction=alpha)
+    n = 400_000
+    rng = np.random.default_rng(4)
+    tilted = normals[0] + 0.3 * np.cross(normals[0], [0.0, 0.0, 1.0])
+    tilted /= np.linalg.norm(tilted)
+    shading = np.tile(tilted.astype(np.float32), (n, 1))
+    d, w, cos = tracer._sample(shading, np.zeros(n, dtype=np.int64), rng.random((n, 2)), rng.random(n), first=True)
+    assert_within(w, 1.0)
+    assert np.all(w[cos <= 0] == 0)
+
+
+def test_guided_vertices_without_a_state_use_cosine_sampling():
+    guide, _ = random_guide(m=1)
+    scene = scenes.build_scene_arrays("PARALLEL_SQUARES")
+    tracer = IndirectTracer(scene, "GUIDED", guide=guide, guide_fraction=0.8)
+    n = 1000
+    rng = np.random.default_rng(5)
+    normals = np.tile(np.array([0, 0, 1], np.float32), (n, 1))
+    _, w, cos = tracer._sample(normals, np.full(n, -1), rng.random((n, 2)), rng.random(n), first=True)
+    np.testing.assert_array_equal(w, 1.0)
+    assert np.all(cos > 0)
+
+
+def test_trace_stats_add_up():
+    a = TraceStats(paths=2, rays=3, shadow_rays=1)
+    a.add(TraceStats(paths=1, rays=1, shadow_rays=4, gathered=2))
+    assert a.as_dict()["paths"] == 3 and a.total_rays == 9 and a.gathered == 2
+
+
+def test_modes_need_their_inputs():
+    scene = scenes.build_scene_arrays("PARALLEL_SQUARES")
+    with pytest.raises(ValueError):
+        IndirectTracer(scene, "GUIDED")
+    with pytest.raises(ValueError):
+        IndirectTracer(scene, "FINAL_GATHER", guide=random_guide()[0])
+    with pytest.raises(ValueError):
+        IndirectTracer(scene, "PHOTON")
