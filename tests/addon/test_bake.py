@@ -1,0 +1,262 @@
+"""lmdp.bake as a user runs it: images, files, statistics, material hook-up, bad input, cancel."""
+import json
+import os
+
+import bpy
+import numpy as np
+import pytest
+
+from helpers import add_material, select
+
+
+@pytest.fixture
+def cornell(fresh_scene):
+    assert bpy.ops.lmdp.add_demo_scene(kind='CORNELL_BOX') == {'FINISHED'}
+    s = fresh_scene.lmdp
+    s.point_count = 400
+    s.rays_per_stratum = 2
+    s.light_samples = 8
+    s.bake_resolution = 16
+    s.bake_samples = 8
+    s.bake_margin = 2
+    s.bake_mode = 'UNGUIDED'
+    return fresh_scene
+
+
+def only(*names):
+    select([bpy.data.objects[n] for n in names])
+
+
+def pixels(image):
+    out = np.empty(image.size[0] * image.size[1] * 4, np.float32)
+    image.pixels.foreach_get(out)
+    return out.reshape(image.size[1], image.size[0], 4)
+
+
+def session(lmdp_ext, scene):
+    return lmdp_ext.sub("operators.session").session_for(scene)
+
+
+def test_unguided_bake_writes_tagged_float_images(cornell, lmdp_ext):
+    only("Floor", "TallBox")
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    result = session(lmdp_ext, cornell).require("bake")
+    for name in ("Floor", "TallBox"):
+        image = bpy.data.images[f"{name}_lmdp_indirect"]
+        assert tuple(image.size) == (16, 16) and image.is_float
+        assert image.colorspace_settings.name == 'Non-Color'
+        assert image["lmdp_bake_object"] == name
+        assert image.packed_file is not None  # kept with the .blend without an output folder
+        ob = result.object(name)
+        np.testing.assert_allclose(pixels(image), ob.image, rtol=1e-6, atol=1e-7)
+        lit = ob.value.mean()
+        assert lit > 0.01
+    assert "Ceiling_lmdp_indirect" not in bpy.data.images
+
+
+def test_output_folder_gets_exr_files_and_statistics(cornell, lmdp_ext, tmp_path):
+    cornell.lmdp.output_dir = str(tmp_path / "bakes")
+    only("Floor")
+    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    cornell.lmdp.bake_mode = 'GUIDED'
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    files = sorted(os.listdir(tmp_path / "bakes"))
+    assert files == ["Floor_lmdp_indirect.exr", "bake_stats.json"]  # no temporary files left
+    image = bpy.data.images["Floor_lmdp_indirect"]
+    assert image.source == 'FILE' and image.filepath_raw.endswith("Floor_lmdp_indirect.exr")
+    loaded = bpy.data.images.load(str(tmp_path / "bakes" / "Floor_lmdp_indirect.exr"))
+    loaded.colorspace_settings.name = 'Non-Color'
+    ob = session(lmdp_ext, cornell).require("bake").object("Floor")
+    np.testing.assert_allclose(pixels(loaded), ob.image, rtol=1e-6, atol=1e-7)  # exact float EXR
+    stats = json.loads((tmp_path / "bakes" / "bake_stats.json").read_text())
+    assert stats["mode"] == "GUIDED" and stats["settings"]["bake_samples"] == 8
+    floor = stats["objects"]["Floor"]
+    assert floor["texels"] == 256 and floor["samples"] == 8 and floor["rays"] > 256 * 8
+    assert set(floor["seconds"]) >= {"sample", "build", "solve", "bake"}
+    assert all(v >= 0 for v in floor["seconds"].values())
+
+
+def test_rebake_replaces_only_its_own_image(cornell, lmdp_ext):
+    user = bpy.data.images.new("Floor_lmdp_indirect", 4, 4)
+    user.pixels.foreach_set(np.full(64, 0.25, np.float32))
+    user_pixels = pixels(user).copy()
+    only("Floor")
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    ours = [im for im in bpy.data.images if im.get("lmdp_bake_object") == "Floor"]
+    assert len(ours) == 1 and ours[0] != user and ours[0].name.startswith("Floor_lmdp_indirect.")
+    np.testing.assert_array_equal(pixels(user), user_pixels)
+    first = pixels(ours[0]).copy()
+    # A material node showing the lightmap keeps showing it after a re-bake (other seed).
+    mat = bpy.data.objects["Floor"].material_slots[0].material
+    node = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    node.image = ours[0]
+    cornell.lmdp.seed = 7
+    cornell.lmdp.bake_resolution = 8
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    ours = [im for im in bpy.data.images if im.get("lmdp_bake_object") == "Floor"]
+    assert len(ours) == 1 and tuple(ours[0].size) == (8, 8) and node.image == ours[0]
+    assert first.shape != pixels(ours[0]).shape
+    np.testing.assert_array_equal(pixels(user), user_pixels)
+
+
+def data_snapshot():
+    return {
+        "images": sorted((im.name, tuple(im.size)) for im in bpy.data.images),
+        "materials": sorted(m.name for m in bpy.data.materials),
+        "nodes": {m.name: sorted(n.name for n in m.node_tree.nodes) for m in bpy.data.materials if m.node_tree},
+    }
+
+
+def test_guided_modes_without_a_solution_are_refused(cornell):
+    only("Floor")
+    before = data_snapshot()
+    for mode in ('GUIDED', 'FINAL_GATHER'):
+        cornell.lmdp.bake_mode = mode
+        with pytest.raises(RuntimeError, match="Solve first"):
+            bpy.ops.lmdp.bake()
+    assert data_snapshot() == before
+
+
+def test_final_gather_needs_physical_mode(cornell):
+    only("Floor", "Ceiling")
+    cornell.lmdp.cost_mode = 'THESIS'
+    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    cornell.lmdp.bake_mode = 'FINAL_GATHER'
+    before = data_snapshot()
+    with pytest.raises(RuntimeError, match="PHYSICAL"):
+        bpy.ops.lmdp.bake()
+    assert data_snapshot() == before
+    cornell.lmdp.bake_mode = 'GUIDED'  # the THESIS-mode policy still guides
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+
+
+def test_mesh_without_uv_map_is_named(lit_scene):
+    bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
+    floor, box = lit_scene["Floor"], lit_scene["Box"]
+    while box.data.uv_layers:
+        box.data.uv_layers.remove(box.data.uv_layers[0])
+    box.data.update()
+    select([floor, box])
+    before = data_snapshot()
+    with pytest.raises(RuntimeError, match=r"No UV map on Box: add one"):
+        bpy.ops.lmdp.bake()
+    assert data_snapshot() == before
+
+
+def test_overlapping_uvs_are_refused(lit_scene):
+    bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
+    box = lit_scene["Box"]
+    uv = box.data.uv_layers.active.data
+    square = [(0.25, 0.25), (0.75, 0.25), (0.75, 0.75), (0.25, 0.75)]
+    for poly in box.data.polygons:  # every face on the same square
+        for corner, loop in enumerate(poly.loop_indices):
+            uv[loop].uv = square[corner]
+    box.data.update()
+    select([box])
+    before = data_snapshot()
+    with pytest.raises(RuntimeError, match="Overlapping UVs on Box"):
+        bpy.ops.lmdp.bake()
+    assert data_snapshot() == before
+
+
+def test_scene_without_light_is_refused(lit_scene):
+    bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
+    lamp = lit_scene["Lamp"]
+    lamp.data.materials.clear()
+    lamp.data.materials.append(add_material("Grey"))
+    select([lit_scene["Floor"]])
+    with pytest.raises(RuntimeError, match="no light to bake"):
+        bpy.ops.lmdp.bake()
+
+
+def test_zero_resolution_cannot_be_set_and_is_refused_by_the_engine(cornell, lmdp_ext):
+    cornell.lmdp.bake_resolution = 0
+    assert cornell.lmdp.bake_resolution == 1  # the property's minimum
+    ops_bake = lmdp_ext.sub("operators.ops_bake")
+    settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
+    settings.bake_resolution = 0  # a script can still pass 0 to the engine pieces
+    only("Floor")
+    with pytest.raises(lmdp_ext.sub("lmdp_addon.errors").SceneError, match="at least 1 pixel"):
+        ops_bake.bake_inputs(bpy.context, settings)
+
+
+def test_unwritable_output_folder_is_refused_before_any_work(cornell, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    cornell.lmdp.output_dir = str(blocker / "bakes")
+    only("Floor")
+    before = data_snapshot()
+    with pytest.raises(RuntimeError, match="Cannot create the output folder"):
+        bpy.ops.lmdp.bake()
+    assert data_snapshot() == before
+
+
+def test_cancelled_bake_leaves_the_previous_image_untouched(cornell, lmdp_ext):
+    only("Floor")
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    previous = pixels(bpy.data.images["Floor_lmdp_indirect"]).copy()
+    ops_bake = lmdp_ext.sub("operators.ops_bake")
+    jobs = lmdp_ext.sub("operators.jobs")
+    settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
+    settings.bake_samples = 64
+    settings.seed = 3
+    inputs = ops_bake.bake_inputs(bpy.context, settings)
+    runner = jobs.JobRunner(ops_bake.compute_bake, inputs, settings, name="bake test")
+    runner.cancel()  # Esc before the first work unit ends
+    runner.start()
+    assert runner.wait(60)
+    with pytest.raises(lmdp_ext.sub("lmdp_addon.errors").Cancelled):
+        runner.outcome()
+    np.testing.assert_array_equal(pixels(bpy.data.images["Floor_lmdp_indirect"]), previous)
+
+
+def test_multiply_hook_up_and_its_removal(cornell):
+    only("Floor")
+    mat = bpy.data.objects["Floor"].material_slots[0].material
+    bsdf = next(n for n in mat.node_tree.nodes if n.type == 'BSDF_DIFFUSE')
+    colour = tuple(bsdf.inputs["Color"].default_value)
+    assert bpy.ops.lmdp.bake(hook_up='MULTIPLY') == {'FINISHED'}
+    nodes = mat.node_tree.nodes
+    assert "LMDP Lightmap" in nodes and "LMDP Lightmap Multiply" in nodes
+    assert nodes["LMDP Lightmap"].image == bpy.data.images["Floor_lmdp_indirect"]
+    link = bsdf.inputs["Color"].links[0]
+    assert link.from_node.name == "LMDP Lightmap Multiply"
+    a = [s for s in nodes["LMDP Lightmap Multiply"].inputs if s.type == 'RGBA'][0]
+    assert tuple(a.default_value) == pytest.approx(colour)
+    assert bpy.ops.lmdp.bake(hook_up='MULTIPLY') == {'FINISHED'}  # idempotent
+    assert sum(n.name.startswith("LMDP Lightmap Multiply") for n in nodes) == 1
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert "LMDP Lightmap" not in nodes and "LMDP Lightmap Multiply" not in nodes
+    assert not bsdf.inputs["Color"].links
+    assert tuple(bsdf.inputs["Color"].default_value) == pytest.approx(colour)
+
+
+def test_multiply_hook_up_keeps_a_linked_colour_and_skips_shared_materials(cornell):
+    mat = bpy.data.objects["Floor"].material_slots[0].material
+    tree = mat.node_tree
+    bsdf = next(n for n in tree.nodes if n.type == 'BSDF_DIFFUSE')
+    rgb = tree.nodes.new("ShaderNodeRGB")
+    tree.links.new(rgb.outputs[0], bsdf.inputs["Color"])
+    bpy.data.objects["Ceiling"].material_slots[0].material = bpy.data.objects["BackWall"].material_slots[0].material
+    only("Floor", "Ceiling")
+    assert bpy.ops.lmdp.bake(hook_up='MULTIPLY') == {'FINISHED'}
+    mix = tree.nodes["LMDP Lightmap Multiply"]
+    assert [s for s in mix.inputs if s.type == 'RGBA'][0].links[0].from_node == rgb
+    shared = bpy.data.objects["Ceiling"].material_slots[0].material
+    assert "LMDP Lightmap Multiply" not in shared.node_tree.nodes
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert bsdf.inputs["Color"].links[0].from_node == rgb
+
+
+def test_preview_hook_up_links_at_object_level_and_is_undone(cornell):
+    only("Floor")
+    floor = bpy.data.objects["Floor"]
+    mesh_material = floor.data.materials[0]
+    assert bpy.ops.lmdp.bake(hook_up='PREVIEW') == {'FINISHED'}
+    slot = floor.material_slots[0]
+    assert slot.link == 'OBJECT' and slot.material.name == "Floor_lmdp_preview"
+    assert floor.data.materials[0] == mesh_material  # the mesh keeps its material
+    tex = slot.material.node_tree.nodes["LMDP Lightmap"]
+    assert tex.image == bpy.data.images["Floor_lmdp_indirect"]
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert floor.material_slots[0].link == 'DATA' and floor.material_slots[0].material == mesh_material
