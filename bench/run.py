@@ -42,40 +42,45 @@ def profiles():
     """The two profiles: ``full`` (make bench) and ``quick`` (make bench-quick)."""
     from bench.engine_figures import EngineProfile
     from bench.speed_error import Profile
+    ladder = (4, 16, 64, 256)
+    all_cases = ("cornell", "narrow_opening", "heavy")
+    light = ("cornell", "narrow_opening")
     full = Profile(
         name="full",
-        cases=("cornell", "narrow_opening", "heavy"),
+        cases=all_cases,
         resolution={"cornell": 128, "narrow_opening": 128, "heavy": 128},
-        ref_samples={"cornell": 2048, "narrow_opening": 2048, "heavy": 1024},
+        ref_samples={"cornell": 1024, "narrow_opening": 1024, "heavy": 1024},
         repeats=3,
         bounces=8,
         cycles_ladder=(1, 4, 16, 64, 256),
-        lmdp_ladder=(4, 16, 64, 256),
-        gather_ladder=(1, 4, 16, 64),
-        guided=[
-            ("GUIDED 2048 pts (defaults)", {}),
-            ("GUIDED 8192 pts", {"point_count": 8192}),
-            ("GUIDED 32768 pts", {"point_count": 32768}),
-            ("GUIDED THESIS λ x0.01", {"cost_mode": "THESIS", "lambda_scale": 0.01}),
-            ("GUIDED THESIS λ x1", {"cost_mode": "THESIS", "lambda_scale": 1.0}),
-        ],
-        gather=[
-            ("FINAL_GATHER 8192 pts", {"point_count": 8192}),
-            ("FINAL_GATHER 32768 pts", {"point_count": 32768}),
+        lmdp_methods=[
+            dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder),
+            dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=ladder),
+            dict(mode="GUIDED", name="GUIDED 32768 pts", ladder=ladder, settings={"point_count": 32768}),
+            dict(mode="GUIDED", name="GUIDED THESIS λ x0.01", ladder=(4, 16, 64), cases=light,
+                 settings={"cost_mode": "THESIS", "lambda_scale": 0.01}),
+            dict(mode="GUIDED", name="GUIDED THESIS λ x1", ladder=(4, 16, 64), cases=light,
+                 settings={"cost_mode": "THESIS", "lambda_scale": 1.0}),
+            dict(mode="FINAL_GATHER", name="FINAL_GATHER 8192 pts", ladder=(1, 4, 16, 64), cases=light,
+                 settings={"point_count": 8192}),
+            dict(mode="FINAL_GATHER", name="FINAL_GATHER 32768 pts", ladder=(1, 4, 16, 64),
+                 settings={"point_count": 32768}),
         ],
     )
     quick = Profile(
         name="quick",
-        cases=("cornell", "narrow_opening"),
+        cases=light,
         resolution={"cornell": 64, "narrow_opening": 64},
         ref_samples={"cornell": 512, "narrow_opening": 512},
         repeats=1,
         bounces=8,
         cycles_ladder=(1, 4, 16, 64),
-        lmdp_ladder=(4, 16, 64),
-        gather_ladder=(1, 4, 16),
-        guided=[("GUIDED 2048 pts (defaults)", {})],
-        gather=[("FINAL_GATHER 2048 pts", {})],
+        lmdp_methods=[
+            dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64)),
+            dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=(4, 16, 64)),
+            dict(mode="GUIDED", name="GUIDED THESIS λ x1", ladder=(4, 16), settings={"cost_mode": "THESIS"}),
+            dict(mode="FINAL_GATHER", name="FINAL_GATHER 2048 pts", ladder=(1, 4, 16)),
+        ],
     )
     engine_full = EngineProfile(name="full", repeats=3,
                                 build_points=16384, build_cases=("CORNELL_BOX", "NARROW_OPENING", "HEAVY"),
@@ -100,6 +105,8 @@ def parse_args(argv=None):
                    "images and ladders, one repeat, no heavy-scene bake; report next to the results")
     p.add_argument("--sections", default=",".join(SECTIONS),
                    help=f"comma-separated subset of {','.join(SECTIONS)} (default: all)")
+    p.add_argument("--cases", default=None, help="comma-separated subset of the bake cases "
+                   "(cornell, narrow_opening, heavy) for a partial run; never written to docs/")
     p.add_argument("--out", type=Path, default=None, help="results folder (default bench/results/<profile>)")
     p.add_argument("--docs", action="store_true", help="write the report to docs/benchmarks.md, "
                    "docs/images/ and the README block even with --quick")
@@ -128,6 +135,16 @@ def main(argv=None):
         return 0
 
     bake_profile, engine_profile = profiles()[name]
+    if args.cases:
+        import dataclasses
+        cases = tuple(c.strip() for c in args.cases.split(",") if c.strip())
+        bad = [c for c in cases if c not in bake_profile.resolution]
+        if bad:
+            print(f"error: unknown case(s) {', '.join(bad)} for the {name} profile; choose from "
+                  f"{', '.join(bake_profile.resolution)}", file=sys.stderr)
+            return 2
+        bake_profile = dataclasses.replace(bake_profile, cases=cases)
+        to_docs = to_docs and args.docs
     out.mkdir(parents=True, exist_ok=True)
     started = time.time()
     t0 = time.perf_counter()
@@ -173,7 +190,9 @@ def main(argv=None):
     results["meta"]["finished"] = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     results["meta"]["load_average_end"] = list(os.getloadavg())
     common.write_json(out / "results.json", results)
-    report.write_report(results, out, to_docs=to_docs)
+    md = report.write_report(results, out, to_docs=to_docs)
+    print(md.read_text())          # the tables, each with its machine line, on stdout
+    log(f"report: {md}")
     log(f"done in {results['meta']['wall_seconds']:.0f} s; results: {out / 'results.json'}")
     return 0
 

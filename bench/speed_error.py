@@ -54,23 +54,21 @@ class Profile:
     repeats: int
     bounces: int
     cycles_ladder: tuple
-    lmdp_ladder: tuple
-    gather_ladder: tuple
-    guided: list = field(default_factory=list)    #: list of (name, settings overrides)
-    gather: list = field(default_factory=list)
+    #: LMDP methods after Cycles, in run order: dicts with ``mode`` ('UNGUIDED', 'GUIDED',
+    #: 'FINAL_GATHER'), ``name``, ``ladder``, optional ``settings`` (overrides of the engine's
+    #: ``Settings`` defaults) and ``cases`` (the cases it runs on; default all).
+    lmdp_methods: list = field(default_factory=list)
 
 
 def method_plan(profile, case_key):
-    """The methods of one case, in run order: Cycles, UNGUIDED, GUIDED configs, FINAL_GATHER."""
+    """The methods of one case, in run order: Cycles first, then the profile's LMDP entries."""
     methods = [CyclesBake(profile.cycles_ladder)]
     ok, _ = lmdp_bake_available()
     if not ok:
         return methods
-    methods.append(LMDPBake("UNGUIDED", profile.lmdp_ladder, name="UNGUIDED"))
-    for name, overrides in profile.guided:
-        methods.append(LMDPBake("GUIDED", profile.lmdp_ladder, name=name, **overrides))
-    for name, overrides in profile.gather:
-        methods.append(LMDPBake("FINAL_GATHER", profile.gather_ladder, name=name, **overrides))
+    for entry in profile.lmdp_methods:
+        if case_key in entry.get("cases", profile.cases):
+            methods.append(LMDPBake(entry["mode"], entry["ladder"], name=entry["name"], **entry.get("settings", {})))
     return methods
 
 
