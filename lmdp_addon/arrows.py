@@ -362,6 +362,12 @@ class Probe:
     terminal_probability: float
     target_points: np.ndarray
 
+    def links(self, shorten=0.0):
+        """:class:`Arrows` from the probed state to each target x' (probability u*(x'|x))."""
+        start = self.arrows.starts[:1] if self.arrows.count else self.target_points[:0]
+        starts = np.repeat(start, len(self.targets), axis=0)
+        return arrows_between(starts, self.target_points, self.target_probability, self.state, shorten)
+
 
 @dataclass
 class PolicyView:
@@ -388,8 +394,9 @@ class PolicyView:
 
     def lines(self, head_fraction=0.3):
         """``(vertices (2L, 3) float32, colours (2L, 4) float32)`` of every segment to draw: the
-        subset's arrows, the probe's arrows and a cross at each probe target, coloured by
-        probability (:func:`arrow_colors`, each group on its own scale)."""
+        subset's arrows, the probe's arrows, and for each probe target a cross and a line from
+        the probed state, coloured by probability (:func:`arrow_colors`, each group on its own
+        scale)."""
         verts, colors = [], []
         for arrows in (self.arrows, self.probe.arrows if self.probe is not None else None):
             if arrows is None or arrows.count == 0:
@@ -401,6 +408,11 @@ class PolicyView:
             v, which = target_crosses(self.probe.target_points, self._cross_size())
             verts.append(v)
             colors.append(arrow_colors(self.probe.target_probability)[which])
+            links = self.probe.links()
+            v, which = arrow_lines(links, head_fraction=0.0)
+            keep = (np.arange(len(v)) % 10) < 2          # the shafts only
+            verts.append(v[keep])
+            colors.append(arrow_colors(links.probability)[which][keep])
         if not verts:
             return np.zeros((0, 3), np.float32), np.zeros((0, 4), np.float32)
         return np.concatenate(verts).astype(np.float32), np.concatenate(colors).astype(np.float32)
@@ -456,17 +468,20 @@ def policy_view(states, u, subset, max_points, scale, candidates, min_probabilit
     return PolicyView(arrows=arrows, subset=subset, points=points, probe=probe)
 
 
-def probe(states, u, policy_row, location, scale, next_states=24, candidates=None):
+def probe(states, u, policy_row, location, scale, next_states=24, candidates=None, longest=False):
     """:class:`Probe` of the state nearest to ``location`` (:func:`nearest_state`).
 
     ``u (m, S)`` directional policy; ``policy_row``: a callable ``i -> (columns, values)`` giving
     the row of u*(x'|x) over the next states (:func:`lmdp_addon.policy.optimal_policy`).
     Every stratum arrow is drawn (the whole distribution, as in Figure 5), with length
-    ``scale x u*(k|x)``.
+    ``scale x u*(k|x)``; with ``longest=True`` the most probable stratum's arrow is ``scale``
+    long instead (a single state's distribution is easier to read at a fixed size).
     """
     i = nearest_state(states.points, states.normals, location, candidates)
     if i < 0:
         raise ValueError("there are no states to probe")
+    if longest:
+        scale = float(scale) / max(float(u[i].max()), 1e-12)
     arrows = stratum_arrows(states.points[i:i + 1], states.frames[i:i + 1], u[i:i + 1], states.strata_u,
                             states.strata_v, scale, 0.0, lift=0.01 * float(scale))
     arrows.point[:] = i

@@ -50,8 +50,9 @@ QUANTITIES = ("Z", "COST_TO_GO", "RESIDUAL")
 class FieldWeights:
     """Interpolation from m states to V samples.
 
-    matrix    CSR (V, m) float64, rows sum to 1 (empty rows: no state on the sample's object)
-    nearest   (V,) int64: the state of largest weight of each sample (-1: none)
+    matrix    CSR (V, m) float32, rows sum to 1 (all-zero rows: no state on the sample's object);
+              rows may hold explicit zeros
+    nearest   (V,) int64: the nearest state counted for each sample (-1: none)
     fallback  (V,) bool: no compatible state among the neighbours; the nearest state of the
               object was used
     """
@@ -92,20 +93,24 @@ def interpolation_weights(sample_points, sample_normals, sample_objects, state_p
     N = _unit(np.asarray(sample_normals, dtype=np.float64).reshape(-1, 3))
     O = np.asarray(sample_objects).reshape(-1)
     S = np.asarray(state_points, dtype=np.float64).reshape(-1, 3)
-    SN = _unit(np.asarray(state_normals, dtype=np.float64).reshape(-1, 3))
+    SN = _unit(np.asarray(state_normals, dtype=np.float64).reshape(-1, 3)).astype(np.float32)
     SO = np.asarray(state_objects).reshape(-1)
     spacing = np.asarray(state_spacing, dtype=np.float64).reshape(-1)
     V, m = len(P), len(S)
+    kmax = int(max(1, min(k, m)))
+    # Dense (V, k) neighbour lists, wrapped into CSR at the end without sorting (rows may hold
+    # explicit zeros: padding for objects with fewer than k states, incompatible neighbours).
+    all_idx = np.zeros((V, kmax), dtype=np.int32)
+    all_w = np.zeros((V, kmax), dtype=np.float32)
     nearest = np.full(V, -1, dtype=np.int64)
     fallback = np.zeros(V, dtype=bool)
-    rows, cols, vals = [], [], []
     for obj in np.unique(O):  # a loop over objects (few), vectorised over their samples
         samples = np.flatnonzero(O == obj)
         owned = np.flatnonzero(SO == obj)
         if owned.size == 0:
             continue
-        tree = cKDTree(S[owned])
-        kk = int(min(k, owned.size))
+        tree = cKDTree(S[owned], leafsize=8)
+        kk = int(min(kmax, owned.size))
         dist, idx, ok = _compatible_neighbours(tree, owned, P[samples], N[samples], SN, kk, min_cos, workers)
         retry = np.flatnonzero(~ok.any(axis=1))
         if retry.size and owned.size > kk:
@@ -122,37 +127,30 @@ def interpolation_weights(sample_points, sample_normals, sample_objects, state_p
             idx[rows_] = np.take_along_axis(i2, order, axis=1)[found]
             ok[rows_] = np.take_along_axis(ok2, order, axis=1)[found]
         none = ~ok.any(axis=1)
-        if none.any():  # the nearest state of the object, whatever its normal
+        if none.any():  # the nearest state of the object, whatever its normal (column 0)
             ok[none] = False
-            ok[none, np.argmin(dist[none], axis=1)] = True
+            ok[none, 0] = True
         fallback[samples[none]] = True
         ar = np.arange(len(samples))
-        masked = np.where(ok, dist, np.inf)
-        first = np.argmin(masked, axis=1)  # nearest counted neighbour
+        first = np.argmax(ok, axis=1)  # nearest counted neighbour (distances are sorted)
         d0 = dist[ar, first]
-        h = np.maximum(smoothing * spacing[idx[ar, first]], 1e-12)
-        w = np.where(ok, np.exp(-(dist ** 2 - d0[:, None] ** 2) / (2.0 * h[:, None] ** 2)), 0.0)
+        h = np.maximum(smoothing * spacing[idx[ar, first]], 1e-12).astype(np.float32)
+        w = np.exp(-(dist * dist - (d0 * d0)[:, None]) / (2.0 * h * h)[:, None])
+        w[~ok] = 0.0
         w /= w.sum(axis=1, keepdims=True)
-        nearest[samples] = idx[ar, np.argmax(w, axis=1)]
-        keep = w > 0
-        rows.append(np.broadcast_to(samples[:, None], w.shape)[keep])
-        cols.append(idx[keep])
-        vals.append(w[keep])
-    if rows:
-        r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-    else:
-        r = c = np.zeros(0, dtype=np.int64)
-        v = np.zeros(0)
-    matrix = sp.csr_matrix((v, (r, c)), shape=(V, m))
+        nearest[samples] = idx[ar, first]
+        all_idx[samples, :kk] = idx
+        all_w[samples, :kk] = w
+    matrix = sp.csr_matrix((all_w.ravel(), all_idx.ravel(), np.arange(0, V * kmax + 1, kmax)), shape=(V, m))
     return FieldWeights(matrix, nearest, fallback)
 
 
 def _compatible_neighbours(tree, owned, points, normals, state_normals, k, min_cos, workers):
     """The ``k`` nearest states (distances, state indices, compatibility mask), each (n, k)."""
     dist, local = tree.query(points, k=k, workers=workers)
-    dist = np.asarray(dist, dtype=np.float64).reshape(len(points), k)
-    idx = owned[np.asarray(local).reshape(len(points), k)]
-    cos = np.einsum("sj,skj->sk", normals, state_normals[idx])
+    dist = np.asarray(dist, dtype=np.float32).reshape(len(points), k)
+    idx = owned[np.asarray(local).reshape(len(points), k)].astype(np.int32)
+    cos = np.einsum("sj,skj->sk", normals.astype(np.float32), state_normals[idx])
     no_normal = ~np.any(normals != 0, axis=1)
     return dist, idx, (cos > min_cos) | no_normal[:, None]
 
@@ -252,6 +250,7 @@ class VertexField:
     """The quantity at V samples, ready to be written as attributes.
 
     z         (V,) float64 desirability (luminance in PHYSICAL mode); 0 where it underflows
+    log10_z   (V,) log10 of z, exact where z underflows (-inf where z = 0)
     z_rgb     (V, 3) PHYSICAL radiance, else None
     quantity  (V,) the displayed quantity in its own units (z, J or the residual)
     color     (V, 4) float32 scene-linear RGBA on the colour map
@@ -259,6 +258,7 @@ class VertexField:
     """
 
     z: np.ndarray
+    log10_z: np.ndarray
     z_rgb: np.ndarray
     quantity: np.ndarray
     color: np.ndarray
@@ -291,7 +291,7 @@ def vertex_field(weights, sq, colormap="VIRIDIS"):
         position = sq.scale.position_of_log10(log_res)
         quantity = np.power(10.0, log_res)
     color = colormap_linear(position, colormap)
-    return VertexField(z=z, z_rgb=z_rgb, quantity=quantity, color=color, position=position)
+    return VertexField(z=z, log10_z=log10_z, z_rgb=z_rgb, quantity=quantity, color=color, position=position)
 
 
 # -- display lattices for coarse meshes ----------------------------------------------------------------

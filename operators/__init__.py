@@ -15,9 +15,9 @@ MODULE_NAMES = (
     "panel",
     "ops_scenes",
     "ops_pipeline",
+    "ops_display",
+    "gizmos",
     "ops_bake",
-    # Later modules, each added here when it lands:
-    # "ops_display", "gizmos",
 )
 
 _registered = []

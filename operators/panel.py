@@ -1,15 +1,18 @@
 """The "LMDP" tab of the 3D viewport sidebar (N panel): Sample, Build, Solve, Show, Bake.
 
 Each section is greyed out until the session holds its inputs (states before Build, dynamics
-before Solve, a solution before Show), and shows only the operators that are registered, so the
-panel works while later modules are missing. Drawing reads the session with ``session.peek`` and
-never writes Blender data.
+before Solve, a solution before Show), shows only the operators that are registered, so the
+panel works while later modules are missing, and under its button the stage's status: counts,
+nnz and memory, wall time, residual. Show holds the legend of the latest Show Desirability
+(quantity, colour swatches with their values, the states' full range) and the policy tools.
+Drawing reads the session with ``session.peek`` and never writes Blender data (the legend's
+swatch icons are previews, not data).
 """
 import bpy
 
 from .common import operator_available, selected_meshes
 from .jobs import running_job
-from .session import format_seconds, peek
+from .session import format_bytes, format_seconds, peek
 
 
 def _operator(layout, idname, text=None, icon='NONE', enabled=True):
@@ -36,6 +39,84 @@ def _has_mesh_selection(context):
 def _has(context, stage):
     session = peek(context.scene)
     return session is not None and session.has(stage)
+
+
+def _result(context, stage):
+    session = peek(context.scene)
+    return session.get(stage) if session is not None else None
+
+
+def _timing(context, stage):
+    session = peek(context.scene)
+    seconds = session.timings.get(stage) if session is not None else None
+    return f", {format_seconds(seconds)}" if seconds is not None else ""
+
+
+def _status(layout, text, icon='NONE'):
+    """A small status line under a section's button."""
+    row = layout.row()
+    row.scale_y = 0.8
+    row.label(text=text, icon=icon)
+
+
+# -- legend swatches (icons made from the colour maps) -------------------------------------------------
+
+LEGEND_STEPS = 5
+_previews = {"collection": None}
+
+
+def _swatch_icon(colormap, position):
+    """icon_id of a solid swatch of ``colormap`` at ``position`` in [0, 1] (0 when unavailable,
+    e.g. in background mode)."""
+    collection = _previews["collection"]
+    if collection is None:
+        return 0
+    key = f"{colormap}_{position:.3f}"
+    preview = collection.get(key)
+    if preview is None:
+        from ..lmdp_addon.colormap import colormap_srgb
+        try:
+            rgb = colormap_srgb([position], colormap)[0]
+            size = 16
+            pixels = [float(c) for c in (*rgb, 1.0)] * (size * size)
+            preview = collection.new(key)
+            preview.icon_size = (size, size)
+            preview.icon_pixels_float = pixels
+            preview.image_size = (size, size)
+            preview.image_pixels_float = pixels
+        except Exception:  # no preview support (background mode): text-only legend
+            return 0
+    return preview.icon_id
+
+
+def draw_legend(layout, record):
+    """The colour legend of the latest Show Desirability: quantity, range, swatches with values
+    (top = high), the data's full range when clipped, coarse-mesh hint."""
+    box = layout.box()
+    scale = record.scale
+    box.label(text=scale.label, icon='COLOR')
+    column = box.column(align=True)
+    labels = scale.tick_labels(LEGEND_STEPS)
+    for i in reversed(range(LEGEND_STEPS)):
+        position = i / (LEGEND_STEPS - 1)
+        icon = _swatch_icon(record.colormap, position)
+        text = labels[i] + ("  (and above)" if i == LEGEND_STEPS - 1 else "  (and below)" if i == 0 else "")
+        if icon:
+            column.label(text=text, icon_value=icon)
+        else:
+            column.label(text=text)
+    kind = f"log scale, {scale.decades:.1f} decades" if scale.log else "linear scale"
+    box.label(text=f"{record.colormap.capitalize()}, {kind}")
+    from ..lmdp_addon.colormap import format_log10, format_value
+    fmt = format_log10 if scale.log else format_value
+    box.label(text=f"States: {fmt(scale.data_lo)} .. {fmt(scale.data_hi)}")
+    box.label(text=record.summary() + f", {format_seconds(record.seconds)}")
+    if record.coarse:
+        box.label(text=f"Coarse: {', '.join(record.coarse[:3])}{' ...' if len(record.coarse) > 3 else ''}",
+                  icon='INFO')
+        box.label(text="Enable Subdivide Coarse Meshes for a faithful picture")
+    for message in record.skipped[:3]:
+        box.label(text=f"Skipped {message}", icon='ERROR')
 
 
 class LMDP_PT_main(bpy.types.Panel):
@@ -122,6 +203,10 @@ class LMDP_PT_sample(_LMDPSection, bpy.types.Panel):
         _operator(layout, "lmdp.sample_states", icon='STICKY_UVS_DISABLE', enabled=ready)
         if not ready and running_job() is None:
             layout.label(text="Select at least one mesh object", icon='ERROR')
+        states = _result(context, "states")
+        if states is not None and hasattr(states, "n_states"):
+            _status(layout, f"{states.n_points:,} points x {states.n_strata} strata = "
+                            f"{states.n_states:,} states{_timing(context, 'states')}")
 
 
 class LMDP_PT_build(_LMDPSection, bpy.types.Panel):
@@ -141,6 +226,10 @@ class LMDP_PT_build(_LMDPSection, bpy.types.Panel):
         row.prop(props, "epsilon")
         layout.prop(props, "memory_budget_gb")
         _operator(layout, "lmdp.build_dynamics", icon='LIGHT', enabled=ready)
+        dynamics = _result(context, "dynamics")
+        if dynamics is not None and hasattr(dynamics, "P"):
+            _status(layout, f"P: {dynamics.n_points:,} x {dynamics.n_columns:,}, nnz {dynamics.P.nnz:,}, "
+                            f"{format_bytes(dynamics.memory_bytes())}{_timing(context, 'dynamics')}")
 
 
 class LMDP_PT_solve(_LMDPSection, bpy.types.Panel):
@@ -164,6 +253,14 @@ class LMDP_PT_solve(_LMDPSection, bpy.types.Panel):
         row.active = props.solver != 'DIRECT'
         row.prop(props, "max_iterations")
         _operator(layout, "lmdp.solve", icon='PLAY', enabled=ready)
+        solution = _result(context, "solution")
+        if solution is not None and hasattr(solution, "residual"):
+            state = "converged" if solution.converged else "NOT converged"
+            _status(layout, f"{solution.solver} {state}, {solution.iterations} iterations{_timing(context, 'solution')}",
+                    icon='CHECKMARK' if solution.converged else 'ERROR')
+            _status(layout, f"Relative residual {solution.residual:.2e}")
+            if solution.n_unreachable:
+                _status(layout, f"{solution.n_unreachable:,} states cannot reach a light (z = 0)", icon='INFO')
 
 
 class LMDP_PT_show(_LMDPSection, bpy.types.Panel):
@@ -176,13 +273,45 @@ class LMDP_PT_show(_LMDPSection, bpy.types.Panel):
         return _has(context, "solution")
 
     def draw_section(self, context, layout, props, ready):
+        layout.label(text="Desirability", icon='VPAINT_HLT')
         layout.prop(props, "display_quantity")
+        layout.prop(props, "display_colormap")
+        layout.prop(props, "display_subdivide")
+        row = layout.row()
+        row.active = props.display_subdivide
+        row.prop(props, "display_max_level")
         _operator(layout, "lmdp.show_desirability", icon='VPAINT_HLT', enabled=ready)
+        if operator_available("lmdp.view_desirability"):
+            row = layout.row(align=True)
+            row.enabled = _has(context, "display")
+            row.operator("lmdp.view_desirability", text="Viewport", icon='SHADING_SOLID').target = 'VIEWPORT'
+            row.operator("lmdp.view_desirability", text="Render", icon='SHADING_RENDERED').target = 'RENDER'
+        record = _result(context, "display")
+        if record is not None and hasattr(record, "scale"):
+            draw_legend(layout, record)
+
         layout.separator()
+        layout.label(text="Optimal Policy", icon='FORWARD')
         layout.prop(props, "policy_subset")
         layout.prop(props, "policy_max_points")
         layout.prop(props, "policy_arrow_scale")
-        _operator(layout, "lmdp.show_policy", icon='FORWARD', enabled=ready)
+        layout.prop(props, "show_policy_arrows")
+        if operator_available("lmdp.show_policy"):
+            row = layout.row(align=True)
+            row.enabled = ready
+            row.operator("lmdp.show_policy", icon='FORWARD').as_mesh = False
+            row.operator("lmdp.show_policy", text="As Mesh", icon='MESH_DATA').as_mesh = True
+        if operator_available("lmdp.probe_policy"):
+            row = layout.row(align=True)
+            row.enabled = ready
+            op = row.operator("lmdp.probe_policy", text="Probe 3D Cursor", icon='PIVOT_CURSOR')
+            op.use_cursor, op.pick = True, False
+            op = row.operator("lmdp.probe_policy", text="Pick", icon='EYEDROPPER')
+            op.use_cursor, op.pick = False, True
+        view = _result(context, "policy")
+        if view is not None and hasattr(view, "summary"):
+            _status(layout, view.summary() + _timing(context, "policy"))
+        _operator(layout, "lmdp.clear_display", icon='TRASH')
 
 
 class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
@@ -207,7 +336,8 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row.prop(props, "guide_fraction")
         layout.prop(props, "max_bounces")
         layout.prop(props, "output_dir")
-        _operator(layout, "lmdp.bake", icon='RENDER_STILL', enabled=ready)
+        if not _operator(layout, "lmdp.bake", icon='RENDER_STILL', enabled=ready):
+            _status(layout, "The bake operator is not part of this build", icon='INFO')
         _operator(layout, "lmdp.export_npz", text="Export Matrices (.npz)", icon='EXPORT',
                   enabled=_has(context, "dynamics"))
 
@@ -220,4 +350,21 @@ classes = (
     LMDP_PT_show,
     LMDP_PT_bake,
 )
-register, unregister = bpy.utils.register_classes_factory(classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
+def register():
+    _register_classes()
+    try:
+        import bpy.utils.previews
+        _previews["collection"] = bpy.utils.previews.new()
+    except Exception:  # previews are optional (the legend then shows text only)
+        _previews["collection"] = None
+
+
+def unregister():
+    collection = _previews["collection"]
+    _previews["collection"] = None
+    if collection is not None:
+        bpy.utils.previews.remove(collection)
+    _unregister_classes()

@@ -4,7 +4,7 @@ Property names are public API (scripts and the README use them): add, never rena
 read them with :func:`settings_from_scene`, which returns the engine's plain ``Settings``.
 """
 import bpy
-from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, SOLVERS, Settings
 
@@ -46,6 +46,10 @@ DISPLAY_QUANTITY_ITEMS = (
      "Optimal cost-to-go J = -(log z) / lambda: expected cost of reaching a light from the state"),
     ("RESIDUAL", "Residual",
      "Per-state residual |z - Q P z| of the solve: where the solution is least converged"),
+)
+DISPLAY_COLORMAP_ITEMS = (
+    ("VIRIDIS", "Viridis", "Dark blue to yellow, perceptually uniform (matplotlib's viridis)"),
+    ("INFERNO", "Inferno", "Black to light yellow, perceptually uniform (matplotlib's inferno)"),
 )
 POLICY_SUBSET_ITEMS = (
     ("ACTIVE_OBJECT", "Active Object", "Arrows for the states on the active object"),
@@ -203,6 +207,32 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         description="Length of a policy arrow of probability 1 (metres)",
         default=0.1, min=0.0, max=1000.0, soft_min=0.001, soft_max=10.0, subtype='DISTANCE',
         unit='LENGTH',
+    )
+    display_colormap: EnumProperty(
+        name="Colour Map",
+        description="Perceptual colour map of Show Desirability (log scale for z and the "
+                    "residual, linear for J)",
+        items=DISPLAY_COLORMAP_ITEMS, default='VIRIDIS',
+    )
+    display_subdivide: BoolProperty(
+        name="Subdivide Coarse Meshes",
+        description="Show the field at the resolution of the states on meshes whose faces are "
+                    "larger than the state spacing (a Cornell-box wall is one quad): adds an "
+                    "'LMDP Display' geometry-nodes modifier that subdivides the evaluated mesh "
+                    "and carries the finer colours. The mesh data itself is not changed",
+        default=False,
+    )
+    display_max_level: IntProperty(
+        name="Max Level",
+        description="Largest subdivision level of the LMDP Display modifier (each level splits "
+                    "every face into 4, levels)",
+        default=6, min=1, max=8,
+    )
+    show_policy_arrows: BoolProperty(
+        name="Draw Arrows",
+        description="Draw the optimal-policy arrows of Show Policy and Probe in the 3D viewport "
+                    "(gizmo overlay; hidden when the viewport's gizmos are off)",
+        default=True,
     )
 
     # -- Internal -----------------------------------------------------------------------------------

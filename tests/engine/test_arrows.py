@@ -235,7 +235,10 @@ def test_probe_reads_the_state_under_the_cursor(cornell):
     assert p.terminal_probability + surface.sum() == pytest.approx(1.0)
     view = A.PolicyView(A.Arrows.empty(), probe=p)
     verts, colors = view.lines()
-    assert len(verts) == 10 * p.arrows.count + 6 * len(p.targets)
+    assert len(verts) == 10 * p.arrows.count + 6 * len(p.targets) + 2 * len(p.targets)
+    links = p.links()
+    assert np.allclose(links.ends, p.target_points) and np.allclose(links.probability, p.target_probability)
+    assert np.allclose(links.starts, p.arrows.starts[0])
     assert "probe at state 37" in view.summary()
 
 
