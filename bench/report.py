@@ -323,6 +323,9 @@ def _case_section(key, case, image_rel):
                          fmt_pct(p["rel_rmse_raw"]), fmt_signed_pct(p["bias"], 2)])
     lines += [table(["method", "samples", "wall time", "of which precompute", "bake", "rel. RMSE",
                      "raw rel. RMSE", "bias"], rows), ""]
+    eff = _efficiency_table(case)
+    if eff:
+        lines += [eff, ""]
     # ratio table
     ratios = case.get("ratios", [])
     names = [m["name"] for m in case["methods"] if m["name"] != "Cycles" and case["curves"].get(m["name"])]
@@ -345,6 +348,36 @@ def _case_section(key, case, image_rel):
         lines += [table(["Cycles N (time, error)"] + names, rows), ""]
         lines += [_loss_summary(case, names), ""]
     return "\n".join(lines)
+
+
+def _efficiency_table(case):
+    """Variance and cost per sample of each method relative to UNGUIDED, at the largest sample
+    count both were run at (the precompute is left out here; it is in the wall times above)."""
+    base = {p["samples"]: p for p in case["curves"].get("UNGUIDED", [])}
+    if not base:
+        return ""
+    rows = []
+    for m in case["methods"]:
+        if m["name"] == "UNGUIDED":
+            continue
+        pts = {p["samples"]: p for p in case["curves"].get(m["name"], [])}
+        common = sorted(set(pts) & set(base))
+        if not common:
+            continue
+        n = common[-1]
+        p, b = pts[n], base[n]
+        if not (p["rel_rmse"] > 0 and b["rel_rmse"] > 0 and b["bake_seconds"] > 0):
+            continue
+        var = (p["rel_rmse"] / b["rel_rmse"]) ** 2
+        cost = p["bake_seconds"] / b["bake_seconds"]
+        rows.append([m["name"], n, f"{var:.2f}", f"{cost:.2f}", f"{1.0 / (var * cost):.2f}",
+                     fmt_signed_pct(p["bias"], 2)])
+    if not rows:
+        return ""
+    return ("Per sample, relative to UNGUIDED at the same sample count (error² ratio: below 1 = less noise "
+            "per sample; bake-time ratio without the precompute; efficiency = 1 / (error² ratio x time "
+            "ratio), above 1 = better than UNGUIDED):\n\n"
+            + table(["method", "samples", "error² ratio", "bake-time ratio", "efficiency", "bias"], rows))
 
 
 def _loss_summary(case, names):
@@ -456,6 +489,12 @@ def _solve_section(solve, results):
                                 f"{s['residual']:.1e}" + ("" if s["converged"] else " (not converged)"),
                                 fmt_bytes(s["peak_bytes"]), f"{s['peak_bytes_per_state']:.0f} B"])
     big = max(solve["rows"], key=lambda r: r["build"]["states"]) if solve["rows"] else None
+    builds = [[f"{r['build']['states']} ({r['build']['points']} x {r['build']['strata']})",
+               f"{r['build']['rays']} + {r['build']['shadow_rays']}", fmt_s(r["build"]["build_seconds"]),
+               fmt_rate((r["build"]["rays"] + r["build"]["shadow_rays"]) / r["build"]["build_seconds"]),
+               fmt_bytes(r["build"]["peak_bytes"]), fmt_bytes(r["build"]["estimate_bytes"]),
+               "yes" if r["build"]["estimate_bytes"] >= r["build"]["peak_bytes"] else "**no**"]
+              for r in solve["rows"]]
     lines = [
         "## Solvers: time, residual and memory against size", "",
         f"Cornell box, PHYSICAL cost mode (RGB), {solve['strata'][0]}x{solve['strata'][1]} strata, "
@@ -467,7 +506,11 @@ def _solve_section(solve, results):
         table(["states (points x strata)", "solver", "time", "iterations", "residual", "peak memory",
                "per state"], rows), "",
         _machine_caption(results), "",
-        "![solver scaling](images/bench_solver_scaling.png)", ""]
+        "![solver scaling](images/bench_solver_scaling.png)", "",
+        "The builds of these problems (one run each, in their own process; shadow samples are the "
+        "next-event samples drawn, of which only those above both horizons are traced):", "",
+        table(["states", "stratum rays + shadow samples", "build", "samples/s", "peak memory",
+               "estimate (`estimate_build_bytes`)", "estimate ≥ peak?"], builds), ""]
     if big:
         b = big["build"]
         solved = [s for s, v in big["solvers"].items() if "median_seconds" in v and v.get("converged")]
@@ -475,7 +518,8 @@ def _solve_section(solve, results):
             f"**Largest problem**: {b['states']} states ({b['points']} points x {b['strata']} strata, "
             f"{b['rays']} stratum rays + {b['shadow_rays']} shadow samples) built in {fmt_s(b['build_seconds'])} "
             f"with a peak of {fmt_bytes(b['peak_bytes'])} extra resident memory; "
-            f"`dynamics.estimate_build_bytes` estimated {fmt_bytes(b['estimate_bytes'])} beforehand; the "
+            f"`dynamics.estimate_build_bytes` estimated {fmt_bytes(b['estimate_bytes'])} beforehand"
+            f"{'' if b['estimate_bytes'] >= b['peak_bytes'] else ' (**below the measured peak**)'}; the "
             f"dynamics occupy {fmt_bytes(b['dynamics_bytes'])} (nnz {b['nnz']} point-level, "
             f"{b['stratum_nnz']} per stratum). Solved to tolerance by: {', '.join(solved) or 'none'}.", ""]
     return "\n".join(lines)
@@ -513,7 +557,7 @@ def _policy_section(pol, results):
         "states); `+` marks the direction to the light's centre. THESIS mode for each λ, and the PHYSICAL "
         "mode's u* (the zero-variance guide) for comparison.", "",
         "![u* against lambda](images/bench_policy_lambda.png)", "",
-        table(["λ", "λ / default", "largest u*(k|x)", "KL(u* || p), nats"], rows), "", _machine_caption(results), ""])
+        table(["λ", "λ / default", "largest u*(k|x)", "KL divergence of u* from p, nats"], rows), "", _machine_caption(results), ""])
 
 
 def markdown(results, image_prefix):

@@ -89,7 +89,7 @@ def profiles():
                                 policy_points=2048)
     engine_quick = EngineProfile(name="quick", repeats=1,
                                  build_points=2048, build_cases=("CORNELL_BOX", "NARROW_OPENING", "HEAVY"),
-                                 solve_points=(63, 625, 6250), solve_repeats=1,
+                                 solve_points=(63, 625, 2500), solve_repeats=1,
                                  lambdas=(0.1, 1.0, 10.0), convergence_points=128,
                                  policy_points=512)
     return {"full": (full, engine_full), "quick": (quick, engine_quick)}

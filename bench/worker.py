@@ -119,7 +119,7 @@ def solve(args):
     out.update(seconds=seconds, residual=float(sol.residual), residual_z=float(sol.residual_z),
                iterations=int(sol.iterations), converged=bool(sol.converged), message=sol.message,
                peak_bytes=int(pm.bytes), peak_method=pm.method)
-    if args.tracemalloc:
+    if args.tracemalloc and seconds[0] < 5.0:     # skipped for long solves (DIRECT at 10^5 states)
         import tracemalloc
         gc.collect()
         tracemalloc.start()
