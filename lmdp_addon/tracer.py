@@ -158,8 +158,9 @@ class StateGuide:
             return out
         return self.states_at(positions, side_normals, objects)
 
-    def sample(self, states, u, first):
-        """World directions drawn from g_s for ``states (k,)`` with uniforms ``u (k, 2)``."""
+    def sample(self, states, u, first, return_density=False):
+        """World directions drawn from g_s for ``states (k,)`` with uniforms ``u (k, 2)``
+        (and, with ``return_density``, g_s at them: u*(k|s) S / 2π of the chosen stratum)."""
         prob = self.first if first else self.later
         cdf = self.cdf_first if first else self.cdf_later
         S = self.n_strata
@@ -171,7 +172,10 @@ class StateGuide:
         su = (k // self.strata_v + t) / self.strata_u
         sv = (k % self.strata_v + u[:, 1]) / self.strata_v
         local = square_to_hemisphere(su, sv)
-        return np.einsum("ki,kij->kj", local, self.frames[states])
+        d = np.einsum("ki,kij->kj", local, self.frames[states])
+        if return_density:
+            return d, p * (S / (2.0 * np.pi))
+        return d
 
     def density(self, states, directions, first):
         """g_s(ω) (k,) for world directions ``(k, 3)``: u*(k|s) S / 2π, 0 below s's horizon."""
@@ -383,27 +387,22 @@ class IndirectTracer:
         has = states >= 0
         use_guide = has & (u_mix < self.alpha)
         d = np.empty((len(normals), 3), np.float32)
+        g = np.zeros(len(normals))
         cos_sel = ~use_guide
         if np.any(cos_sel):
             d[cos_sel] = self._cosine_directions(normals[cos_sel], u[cos_sel])
         if np.any(use_guide):
-            d[use_guide] = self.guide.sample(states[use_guide], u[use_guide], first)
-        pdf = self._pdf(normals, states, d, first)
-        cos = np.einsum("ij,ij->i", normals, d)
+            d[use_guide], g[use_guide] = self.guide.sample(states[use_guide], u[use_guide], first,
+                                                           return_density=True)
+        # g_s of the cosine-drawn directions needs their stratum in s's frame; the guide-drawn
+        # ones know theirs. The mixture pdf of every direction: α g + (1 - α) cos/π.
+        other = has & cos_sel
+        if np.any(other):
+            g[other] = self.guide.density(states[other], d[other].astype(np.float64), first)
+        cos = np.einsum("ij,ij->i", normals, d).astype(np.float64)
+        pdf = np.where(has, self.alpha * g, 0.0) + np.where(has, 1.0 - self.alpha, 1.0) * np.maximum(cos, 0.0) * INV_PI
         w = np.where((cos > 0) & (pdf > 0), cos * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
         return d, w.astype(np.float32), cos
-
-    def _pdf(self, normals, states, d, first):
-        """Sampling density (per steradian) of directions ``d`` at vertices with these states."""
-        cos = np.maximum(np.einsum("ij,ij->i", normals, d), 0.0) * INV_PI
-        if self.guide is None:
-            return cos
-        pdf = np.array(cos, dtype=np.float64)
-        has = np.flatnonzero(states >= 0)
-        if len(has):
-            g = self.guide.density(states[has], d[has].astype(np.float64), first)
-            pdf[has] = self.alpha * g + (1.0 - self.alpha) * cos[has]
-        return pdf
 
     # -- next-event estimation -------------------------------------------------------------------
     def _direct(self, points, normals, rng, stats):

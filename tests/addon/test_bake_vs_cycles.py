@@ -1,0 +1,210 @@
+"""lmdp.bake against Cycles' own bake of the same texels (issue 5, Accuracy).
+
+Reference: ``bake_cycles(type='DIFFUSE', pass_filter={'INDIRECT'})`` with adaptive sampling off,
+indirect clamping off (``sample_clamp_indirect = 0``: Cycles' default of 10 clips bright paths and
+biases the reference) and the same path length on both sides (``max_bounces`` = 8 for Cycles'
+total and diffuse bounces and for the engine; Cycles' own defaults are 12 total / 4 diffuse).
+Each reference is two bakes with seeds 1 and 2, cached in ``out/test_cache/cycles`` (ignored by
+git, removed by ``make clean``) under a key of everything that changes it: scene fingerprint,
+object, resolution, samples, seed, bounces and the bpy version.
+
+Tolerances come from the estimates' own variance, never from guesses:
+
+* the engine's per-texel standard error comes from its independent sample batches
+  (``ObjectBake.standard_error``);
+* Cycles' from its two seeds: the mean of the two bakes has per-texel variance ``(a - b)² / 4``;
+* a mean over n texels has variance ``Σ var_i / n²``; bounds are 5 of those standard errors.
+
+The Cornell box's light hangs 5 mm below the ceiling and mesh emission is two-sided (Cycles), so
+the ceiling around it glows: rare, very bright paths make every estimator's error heavy-tailed;
+the sample counts below keep several thousand such paths per bake so the batch variances hold.
+"""
+import hashlib
+import os
+
+import bpy
+import numpy as np
+import pytest
+
+from helpers import select
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+CACHE = os.path.join(ROOT, "out", "test_cache", "cycles")
+BOUNCES = 8
+K = 5.0
+
+
+@pytest.fixture
+def demo(lmdp_ext):
+    return lmdp_ext.sub("operators.demo_scenes")
+
+
+def build(kind, lmdp_ext):
+    assert bpy.ops.lmdp.add_demo_scene(kind=kind) == {'FINISHED'}
+    scene = bpy.context.scene
+    scene.cycles.sample_clamp_indirect = 0.0
+    return scene
+
+
+def reference(lmdp_ext, demo, name, resolution, samples, seeds=(1, 2)):
+    """Cycles' DIFFUSE/INDIRECT bakes of ``name`` with ``seeds``, cached; (len(seeds), R, R, 3)."""
+    extract = lmdp_ext.sub("operators.extract")
+    baking = lmdp_ext.sub("lmdp_addon.baking")
+    scene = bpy.context.scene
+    arrays = extract.extract_scene(bpy.context, [bpy.data.objects[name]])
+    out = []
+    for seed in seeds:
+        key = "|".join(map(str, (baking.scene_fingerprint(arrays), name, resolution, samples, seed,
+                                 BOUNCES, scene.cycles.sample_clamp_indirect, bpy.app.version_string)))
+        path = os.path.join(CACHE, hashlib.sha1(key.encode()).hexdigest()[:20] + ".npy")
+        if os.path.exists(path):
+            out.append(np.load(path))
+            continue
+        px = demo.bake_cycles(bpy.context, bpy.data.objects[name], 'DIFFUSE', ('INDIRECT',), resolution,
+                              samples=samples, margin=0, max_bounces=BOUNCES, seed=seed)[..., :3]
+        os.makedirs(CACHE, exist_ok=True)
+        np.save(path, px.astype(np.float32))
+        out.append(px)
+    return np.stack(out)
+
+
+def lmdp_bake(lmdp_ext, name, mode, resolution, samples, seed=11, **settings):
+    scene = bpy.context.scene
+    s = scene.lmdp
+    s.bake_mode = mode
+    s.bake_resolution = resolution
+    s.bake_samples = samples
+    s.bake_margin = 0
+    s.max_bounces = BOUNCES
+    s.seed = seed
+    for key, value in settings.items():
+        setattr(s, key, value)
+    select([bpy.data.objects[name]])
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    return lmdp_ext.sub("operators.session").session_for(scene).require("bake").object(name)
+
+
+def compare(ob, refs):
+    """Per-texel engine value, Cycles value and their variances (texels lit in both)."""
+    ts = ob.texels
+    cyc = refs.mean(axis=0)[ts.row, ts.col].astype(np.float64)
+    var_c = ((refs[0] - refs[1]) ** 2 / 4.0)[ts.row, ts.col] if len(refs) == 2 else np.zeros_like(cyc)
+    ours = ob.value.astype(np.float64)
+    var_o = ob.standard_error.astype(np.float64) ** 2
+    return ours, cyc, var_o, var_c
+
+
+def assert_means_agree(ours, cyc, var_o, var_c):
+    n = len(ours)
+    diff = ours.mean(axis=0) - cyc.mean(axis=0)
+    sigma = np.sqrt((var_o.sum(axis=0) + var_c.sum(axis=0)) / n ** 2)
+    assert np.all(np.abs(diff) <= K * sigma), f"mean difference {diff} vs {K} x sigma {sigma}"
+    return diff / cyc.mean(axis=0), sigma / cyc.mean(axis=0)
+
+
+@pytest.mark.parametrize("mode", ["UNGUIDED", "GUIDED"])
+def test_cornell_floor_matches_cycles_at_low_resolution(fresh_scene, lmdp_ext, demo, mode):
+    """The default suite's end-to-end check: Blender scene -> lmdp.bake -> same texels and the
+    same mean as Cycles within 5 standard errors of both estimates; per texel, the squared
+    differences are as large as the two variance estimates predict: E[(ours - cyc)²] =
+    var_ours + var_cyc for unbiased estimates, so the texel mean of the squared difference minus
+    the estimated variances is 0 within 5 standard errors (computed from the texels)."""
+    build("CORNELL_BOX", lmdp_ext)
+    refs = reference(lmdp_ext, demo, "Floor", 16, 1024)
+    if mode == "GUIDED":
+        fresh_scene.lmdp.point_count = 1024
+        select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
+        assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    ob = lmdp_bake(lmdp_ext, "Floor", mode, 16, 512)
+    covered = np.zeros((16, 16), bool)
+    covered[ob.texels.row, ob.texels.col] = True
+    assert covered.all()  # the floor's UVs cover the image, in Cycles' mapping too
+    ours, cyc, var_o, var_c = compare(ob, refs)
+    assert_means_agree(ours, cyc, var_o, var_c)
+    excess = ((ours - cyc) ** 2 - var_o - var_c).sum(axis=1)
+    assert abs(excess.mean()) <= K * excess.std() / np.sqrt(len(excess)), excess.mean()
+
+
+# -- slow: convergence at high sample counts ----------------------------------------------------------
+
+def relative_rmse(ours, cyc, var_c):
+    """RMSE of the engine against Cycles relative to Cycles' mean, with the reference's own
+    noise removed (E[(ours - cyc)²] = var_ours + bias² + var_cyc)."""
+    mse = np.mean((ours - cyc) ** 2) - np.mean(var_c)
+    return np.sqrt(max(mse, 0.0)) / cyc.mean()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["Floor", "TallBox"])
+@pytest.mark.parametrize("mode", ["UNGUIDED", "GUIDED"])
+def test_converges_to_cycles_at_high_samples(fresh_scene, lmdp_ext, demo, name, mode):
+    """Mean within 1 % of Cycles' (and within 5 standard errors), and the relative RMSE falls like
+    1/sqrt(samples): from N to 4N samples it halves, within 5 standard errors of the ratio
+    (propagated from the per-texel squared errors)."""
+    build("CORNELL_BOX", lmdp_ext)
+    R = 32
+    refs = reference(lmdp_ext, demo, name, R, 8192)
+    if mode == "GUIDED":
+        select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
+        assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    errors = []
+    for samples in (256, 1024, 4096):
+        ob = lmdp_bake(lmdp_ext, name, mode, R, samples)
+        ours, cyc, var_o, var_c = compare(ob, refs)
+        rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
+        sq = ((ours - cyc) ** 2 - var_c).mean(axis=1)
+        errors.append((samples, sq.mean(), sq.std() / np.sqrt(len(sq)), rel))
+    _, last_rel_sigma = rel, rel_sigma
+    assert np.all(np.abs(errors[-1][3]) < 0.01), f"mean bias {errors[-1][3]} at 4096 samples"
+    for (n1, m1, s1, _), (n2, m2, s2, _) in zip(errors, errors[1:]):
+        ratio = m1 / m2  # squared error: 4 for a 4x sample increase
+        sigma = ratio * np.sqrt((s1 / m1) ** 2 + (s2 / m2) ** 2)
+        assert abs(ratio - n2 / n1) <= K * sigma, (n1, n2, ratio, sigma, errors)
+
+
+@pytest.mark.slow
+def test_guided_has_lower_variance_than_unguided_through_a_narrow_opening(fresh_scene, lmdp_ext):
+    """Room A is lit only through the hatch. Same texels, same samples: the per-texel variances
+    of GUIDED (from its batches) are lower than UNGUIDED's on most texels. Under equal variances
+    a texel is lower with probability 1/2; the observed fraction must exceed 1/2 by 5 binomial
+    standard errors."""
+    build("NARROW_OPENING", lmdp_ext)
+    select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
+    fresh_scene.lmdp.strata_u = fresh_scene.lmdp.strata_v = 8
+    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    un = lmdp_bake(lmdp_ext, "RoomAFloor", "UNGUIDED", 64, 128)
+    gu = lmdp_bake(lmdp_ext, "RoomAFloor", "GUIDED", 64, 128)
+    up = un.texels.normal[:, 2] > 0.5
+    vu = (un.standard_error.astype(float) ** 2).sum(axis=1)[up]
+    vg = (gu.standard_error.astype(float) ** 2).sum(axis=1)[up]
+    lit = (vu > 0) & (vg > 0)
+    frac = np.mean(vg[lit] < vu[lit])
+    n = lit.sum()
+    assert frac > 0.5 + K * 0.5 / np.sqrt(n), (frac, n, np.median(vg[lit] / vu[lit]))
+
+
+@pytest.mark.slow
+def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
+    """FINAL_GATHER is biased by the discretisation of z. Measured here and quoted in the README
+    ("Baking"): the relative mean bias (luminance) against Cycles on the floor at the default 2048
+    points lies in the quoted range, and 4x more points reduce it."""
+    build("CORNELL_BOX", lmdp_ext)
+    refs = reference(lmdp_ext, demo, "Floor", 32, 8192)
+    biases = []
+    for points in (2048, 8192):
+        select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
+        fresh_scene.lmdp.point_count = points
+        assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+        ob = lmdp_bake(lmdp_ext, "Floor", "FINAL_GATHER", 32, 256)
+        ours, cyc, var_o, var_c = compare(ob, refs)
+        lum = np.array([0.2126, 0.7152, 0.0722])
+        biases.append(float((ours.mean(axis=0) - cyc.mean(axis=0)) @ lum / (cyc.mean(axis=0) @ lum)))
+    print(f"FINAL_GATHER relative bias (luminance) at 2048 / 8192 points: {biases}")
+    low, high = FINAL_GATHER_BIAS_RANGE
+    assert low < biases[0] < high, biases
+    assert abs(biases[1]) < abs(biases[0]), biases
+
+
+#: The range quoted in README.md ("Baking"): seeds 0-2 measured +23 % .. +27 % at 2048 points
+#: (+12 % at 8192) on the engine's scene arrays of the same box.
+FINAL_GATHER_BIAS_RANGE = (0.15, 0.35)
