@@ -30,23 +30,23 @@ class LMDP_GT_policy_arrows(bpy.types.Gizmo):
     """Draws the policy arrows (not selectable)."""
 
     bl_idname = "LMDP_GT_policy_arrows"
-    __slots__ = ("lmdp_batch", "lmdp_shader", "lmdp_view_id")
+    __slots__ = ("lmdp_batch", "lmdp_shader", "lmdp_view")
 
     def setup(self):
         self.lmdp_batch = None
         self.lmdp_shader = None
-        self.lmdp_view_id = None
+        self.lmdp_view = None  # the PolicyView the batch was built from (a reference, not an id)
 
     def _batch(self, view):
         import gpu
         from gpu_extras.batch import batch_for_shader
         if self.lmdp_shader is None:
             self.lmdp_shader = gpu.shader.from_builtin('POLYLINE_SMOOTH_COLOR')
-        if self.lmdp_view_id != id(view) or self.lmdp_batch is None:
+        if self.lmdp_view is not view:
             vertices, colors = view.lines()
             self.lmdp_batch = batch_for_shader(self.lmdp_shader, 'LINES', {"pos": vertices, "color": colors}) \
                 if len(vertices) else None
-            self.lmdp_view_id = id(view)
+            self.lmdp_view = view
         return self.lmdp_batch
 
     def draw(self, context):

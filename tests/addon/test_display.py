@@ -409,3 +409,46 @@ def test_probe_at_the_cursor(solved, lmdp_ext):
 def test_display_operators_support_undo(lmdp_ext):
     for idname in ("show_desirability", "show_policy", "probe_policy", "clear_display", "view_desirability"):
         assert 'UNDO' in getattr(bpy.types, f"LMDP_OT_{idname}").bl_options
+
+
+def test_overlay_is_registered(lmdp_ext):
+    gizmos = lmdp_ext.sub("operators.gizmos")
+    for cls in (gizmos.LMDP_GGT_policy, gizmos.LMDP_GT_policy_arrows):
+        assert "bl_rna" in cls.__dict__ and cls.bl_rna.identifier == cls.bl_idname   # registered
+    assert {'3D', 'PERSISTENT'} <= gizmos.LMDP_GGT_policy.bl_options
+
+
+# -- the demo's pictures ---------------------------------------------------------------------------------
+
+def test_picture_render_settings(fresh_scene):
+    import lmdp_headless
+    lmdp_headless.configure_render(fresh_scene, 16)
+    assert fresh_scene.render.engine == 'CYCLES' and fresh_scene.view_settings.view_transform == 'Standard'
+    assert fresh_scene.render.resolution_x == fresh_scene.render.resolution_y == lmdp_headless.PICTURE_SIZE
+    assert not fresh_scene.cycles.use_denoising            # emission-only colour renders need none
+    lmdp_headless.configure_render(fresh_scene, 32)
+    assert fresh_scene.cycles.use_denoising or fresh_scene.cycles.samples == 64
+    assert fresh_scene.render.image_settings.file_format == 'PNG'
+
+
+@pytest.mark.slow
+def test_headless_demo_renders_the_pictures(repo_root, tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
+    output = tmp_path / "demo"
+    run = subprocess.run([sys.executable, str(repo_root / "scripts" / "lmdp_headless.py"), "--demo", "cornell",
+                          "--output", str(output), "--set", "point_count=400", "--set", "rays_per_stratum=2"],
+                         capture_output=True, text=True, env=env, timeout=1800)
+    assert run.returncode == 0, run.stderr[-2000:]
+    summary = json.loads((output / "summary.json").read_text())
+    for kind in ("z", "policy", "probe"):
+        path = summary["pictures"][kind]
+        assert os.path.getsize(path) > 10_000
+        image = bpy.data.images.load(path)
+        assert tuple(image.size) == (320, 320)
+        pixels = np.empty(320 * 320 * 4, np.float32)
+        image.pixels.foreach_get(pixels)
+        assert pixels.reshape(-1, 4)[:, :3].std() > 0.05            # not a blank picture
