@@ -120,22 +120,21 @@ def display_targets(context, scene_arrays, states):
     return targets, skipped
 
 
-def _lattice(scene_arrays, obj_index, spacing, max_level):
-    """World lattice (points, normals, triangles) over the object's triangles at the resolution
-    of its states, or None when its triangles are already finer than that."""
-    tri = np.flatnonzero((scene_arrays.triangle_object == obj_index) & scene_arrays.valid_triangles())
+def _lattice(scene_arrays, geometry, obj_index, spacing, max_level):
+    """World lattice (points, normals, triangles) over the object's captured triangles at the
+    resolution of its states (the triangles themselves when they are already that fine, e.g. when
+    the states were sampled on an earlier LMDP Display subdivision). ``geometry``: the scene's
+    ``triangle_geometry()`` (normals, areas), computed once."""
+    normals, areas = geometry
+    tri = np.flatnonzero((scene_arrays.triangle_object == obj_index) & (areas > 0))
     if tri.size == 0:
         return None
     corners = scene_arrays.corners()[tri]
     edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max()
-    level = vertex_field.subdivision_level(edges, spacing, max_level)
-    n = 2 ** level
+    n = 2 ** vertex_field.subdivision_level(edges, spacing, max_level)
     while n > 1 and len(tri) * (n + 1) * (n + 2) // 2 > MAX_LATTICE_NODES:
         n //= 2
-    if n <= 1:
-        return None
     points, triangles, source = vertex_field.triangle_lattice(corners, n)
-    normals, _ = scene_arrays.triangle_geometry()
     return points, normals[tri][source], triangles
 
 
@@ -241,6 +240,7 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
         if not targets:
             raise SceneError("Nothing to show z on: " + "; ".join(skipped))
         spacing = vertex_field.state_spacing(states.point_area)
+        geometry = scene_arrays.triangle_geometry() if props.display_subdivide else None
         previous = session.get("display")
         cache = previous.weights if previous is not None and previous.states_id == id(states) else {}
         inputs = []
@@ -250,7 +250,7 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
             object_spacing = float(np.median(spacing[own]))
             edge = data.longest_edge(obj, points)
             level = vertex_field.subdivision_level(edge, object_spacing, props.display_max_level)
-            lattice = _lattice(scene_arrays, index, object_spacing, props.display_max_level) \
+            lattice = _lattice(scene_arrays, geometry, index, object_spacing, props.display_max_level) \
                 if props.display_subdivide and level > 0 else None
             key = geometry_key(points, normals, lattice)
             inputs.append({"name": obj.name, "index": index, "points": points, "normals": normals,
@@ -366,7 +366,9 @@ class LMDP_OT_view_desirability(bpy.types.Operator):
                                           "nothing changed. In the UI this sets Solid shading with "
                                           "Attribute colours")
                     return {'FINISHED'}
-                self.report({'INFO'}, f"{'Set' if self.enable else 'Reset'} the shading of {count} 3D viewport(s)")
+                where = " stored in the file (background mode: it shows when the file is opened in Blender)" \
+                    if bpy.app.background else ""
+                self.report({'INFO'}, f"{'Set' if self.enable else 'Reset'} the shading of {count} 3D viewport(s){where}")
             else:
                 material = set_render_override(context, self.enable)
                 self.report({'INFO'}, f"Renders show the LMDP colours ({material.name} override)" if material

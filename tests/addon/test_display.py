@@ -452,3 +452,21 @@ def test_headless_demo_renders_the_pictures(repo_root, tmp_path):
         pixels = np.empty(320 * 320 * 4, np.float32)
         image.pixels.foreach_get(pixels)
         assert pixels.reshape(-1, 4)[:, :3].std() > 0.05            # not a blank picture
+
+
+def test_sampling_again_on_the_subdivided_display_keeps_it(solved, lmdp_ext):
+    """States sampled on an object that already shows the LMDP Display subdivision (its evaluated
+    mesh is fine): showing again keeps the modifier, on the new states."""
+    solved.lmdp.display_subdivide = True
+    floor = bpy.data.objects["Floor"]
+    assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
+    corners_before = len(evaluated(floor, "lmdp_z")[0])
+    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    arrays = session(lmdp_ext).require("scene_arrays")
+    assert np.count_nonzero(arrays.triangle_object == arrays.object_names.index("Floor")) > 2  # subdivided
+    assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
+    assert [m.name for m in floor.modifiers] == ["LMDP Display"]
+    positions, shown, _ = evaluated(floor, "lmdp_z")
+    assert len(positions) == corners_before
+    _, z, _ = state_values(lmdp_ext, "Floor")
+    assert shown.min() >= z.min() * (1 - 1e-4) and shown.max() <= z.max() * (1 + 1e-4)
