@@ -229,3 +229,18 @@ def test_a_coarse_quad_needs_the_lattice_to_be_faithful():
 
 def test_state_spacing():
     assert np.allclose(VF.state_spacing([0.01, 0.0004, -1.0]), [0.1, 0.02, 0.0])
+
+
+def test_a_crowd_of_back_face_states_does_not_hide_the_front_face():
+    """All 12 nearest states face the other way: the search widens before falling back."""
+    rng = np.random.default_rng(13)
+    back = np.column_stack([rng.normal(0, 0.002, (30, 2)), np.full(30, -0.0005)])
+    front = np.column_stack([rng.uniform(-0.5, 0.5, (200, 2)), np.full(200, 0.0005)])
+    front[np.linalg.norm(front[:, :2], axis=1) < 0.03] += [0.1, 0.0, 0.0]
+    points = np.vstack([back, front])
+    normals = np.vstack([np.tile([0, 0, -1.0], (30, 1)), np.tile([0, 0, 1.0], (200, 1))])
+    values = np.r_[np.full(30, 100.0), np.full(200, 1.0)]
+    w = VF.interpolation_weights([[0, 0, 0.001]], [[0, 0, 1.0]], [0], points, normals, np.zeros(230, int),
+                                 np.full(230, 0.07))
+    assert not w.fallback[0] and w.nearest[0] >= 30
+    assert VF.interpolate(w, values)[0] == pytest.approx(1.0)
