@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .hemisphere import concentric_square_to_disk, square_to_hemisphere, stratum_of_local_direction
+from .hemisphere import QUARTER_PI, square_to_hemisphere
 from .raycast import RayCaster
 
 INV_PI = 1.0 / np.pi
@@ -336,6 +336,7 @@ class IndirectTracer:
         self.gather = gather if mode == "FINAL_GATHER" else None
         self.alpha = float(np.clip(guide_fraction, 0.0, 1.0)) if self.guide is not None else 0.0
         self.rr_start = int(rr_start)
+        self.guide_depth = 1 << 30
         self.caster = caster or RayCaster(scene)
         self.eps = np.float32(self.caster.offset())
         normals, areas = scene.triangle_geometry()
@@ -371,17 +372,40 @@ class IndirectTracer:
 
     # -- direction sampling ----------------------------------------------------------------------
     @staticmethod
-    def _cosine_directions(normals, u):
-        """Cosine-weighted directions about ``normals (k, 3)`` from uniforms ``u (k, 2)``."""
-        x, y = concentric_square_to_disk(u[:, 0], u[:, 1])
-        z = np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
-        t, b = _tangents(normals)
-        return (x[:, None] * t + y[:, None] * b + z[:, None] * normals).astype(np.float32)
+    def _cosine_directions(normals, u, stratified=True):
+        """Cosine-weighted directions about ``normals (k, 3)`` from uniforms ``u (k, 2)``.
+
+        ``stratified``: Shirley–Chiu's concentric map (keeps the strata of stratified ``u``
+        compact: the texel's first bounce); otherwise the cheaper polar map
+        ``r = sqrt(u0), φ = 2π u1`` (independent uniforms of later bounces). Both are exact
+        cosine-weighted warps of the unit square. float32 throughout.
+        """
+        u = np.asarray(u, dtype=np.float32)
+        if stratified:
+            a = 2.0 * u[:, 0] - 1.0
+            b = 2.0 * u[:, 1] - 1.0
+            use_a = np.abs(a) > np.abs(b)
+            r = np.where(use_a, a, b)
+            num = np.where(use_a, b, a)
+            ratio = num / np.where(r != 0, r, 1.0)
+            phi = np.where(use_a, np.float32(QUARTER_PI) * ratio,
+                           np.float32(2 * QUARTER_PI) - np.float32(QUARTER_PI) * ratio)
+            x = r * np.cos(phi)
+            y = r * np.sin(phi)
+            z = np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
+        else:
+            r = np.sqrt(u[:, 0])
+            phi = np.float32(2.0 * np.pi) * u[:, 1]
+            x = r * np.cos(phi)
+            y = r * np.sin(phi)
+            z = np.sqrt(np.maximum(1.0 - u[:, 0], 0.0))
+        t, b2 = _tangents(normals)
+        return (x[:, None] * t + y[:, None] * b2 + z[:, None] * normals).astype(np.float32, copy=False)
 
     def _sample(self, normals, states, u, u_mix, first):
         """Directions ``d``, weights ``w = cos θ / (π p(d))`` and ``cos θ`` at vertices."""
         if self.guide is None:
-            d = self._cosine_directions(normals, u)
+            d = self._cosine_directions(normals, u, stratified=first)
             cos = np.einsum("ij,ij->i", normals, d)
             return d, np.ones(len(normals), np.float32), cos
         has = states >= 0
@@ -390,7 +414,7 @@ class IndirectTracer:
         g = np.zeros(len(normals))
         cos_sel = ~use_guide
         if np.any(cos_sel):
-            d[cos_sel] = self._cosine_directions(normals[cos_sel], u[cos_sel])
+            d[cos_sel] = self._cosine_directions(normals[cos_sel], u[cos_sel], stratified=first)
         if np.any(use_guide):
             d[use_guide], g[use_guide] = self.guide.sample(states[use_guide], u[use_guide], first,
                                                            return_density=True)
@@ -537,7 +561,7 @@ class IndirectTracer:
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
-            if self.guide is not None:
+            if self.guide is not None and bounce < self.guide_depth:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, nrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             L[idx] += beta * self._direct(pos, nrm, rng, stats)

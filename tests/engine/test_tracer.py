@@ -226,3 +226,22 @@ def test_modes_need_their_inputs():
         IndirectTracer(scene, "FINAL_GATHER", guide=random_guide()[0])
     with pytest.raises(ValueError):
         IndirectTracer(scene, "PHOTON")
+
+
+def test_cosine_warps_are_shirley_chiu_and_polar():
+    """The texel's stratified first bounce uses the concentric map (as hemisphere.py), later
+    bounces the polar map; both give cosine-distributed directions: E[cos θ] = 2/3 and the
+    fraction within θ < 60° is sin²(60°) = 3/4."""
+    from lmdp_addon.hemisphere import concentric_square_to_disk
+    rng = np.random.default_rng(6)
+    u = rng.random((100_000, 2))
+    normals = np.tile(np.array([0, 0, 1], np.float32), (len(u), 1))
+    d = IndirectTracer._cosine_directions(normals, u, stratified=True)
+    x, y = concentric_square_to_disk(u[:, 0], u[:, 1])
+    np.testing.assert_allclose(d[:, 0], x, atol=2e-6)
+    np.testing.assert_allclose(d[:, 1], y, atol=2e-6)
+    for stratified in (True, False):
+        d = IndirectTracer._cosine_directions(normals, u, stratified=stratified).astype(np.float64)
+        np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
+        assert_within(d[:, 2], 2.0 / 3.0)
+        assert_within((d[:, 2] > 0.5).astype(float), 0.75)
