@@ -362,6 +362,13 @@ class IndirectTracer:
             self.emitter_two_sided = scene.triangle_emission_two_sided[em]
             self.emitter_radiance = scene.triangle_emission[em].astype(np.float32)
             self.emitter_pdf_area = (prob / areas[em]).astype(np.float32)  #: p_A of a point on it
+            self.emitter_prob = prob
+            self.emitter_corners64 = c
+            self.emitter_longest2 = np.max(np.stack([np.sum((c[:, 1] - c[:, 0]) ** 2, axis=1),
+                                                     np.sum((c[:, 2] - c[:, 1]) ** 2, axis=1),
+                                                     np.sum((c[:, 0] - c[:, 2]) ** 2, axis=1)]), axis=0)
+        self.triangle_emitter_index = np.full(T, -1, dtype=np.int64)
+        self.triangle_emitter_index[em] = np.arange(len(em))
         # Per scene triangle, for rays that hit emitters: light-sampling p_A (0: not an emitter).
         self.triangle_emitter_pdf_area = np.zeros(T, np.float32)
         if len(em):
@@ -444,37 +451,61 @@ class IndirectTracer:
         out = np.zeros((k, 3), np.float32)
         if self.n_emitter_triangles == 0 or k == 0:
             return out
-        r = rng.random((k, 3), dtype=np.float32)
+        r = rng.random((k, 3))
         e = np.minimum(np.searchsorted(self.emitter_cdf, r[:, 0], side="right"), self.n_emitter_triangles - 1)
-        s = np.sqrt(r[:, 1])
-        b1 = (s * (1.0 - r[:, 2]))[:, None]
-        b2 = (s * r[:, 2])[:, None]
-        q = self.emitter_corner[e] + b1 * self.emitter_edge1[e] + b2 * self.emitter_edge2[e]
         # Direction and distance from the offset origin itself: from the surface point, a shadow
         # ray at a grazing angle would meet the emitter's plane before ``dist`` (close emitters).
         origin = points + self.eps * normals
-        to = q - origin
-        r2 = np.einsum("ij,ij->i", to, to)
-        dist = np.sqrt(r2)
-        dl = to / np.maximum(dist, 1e-30)[:, None]
-        cos_y = np.einsum("ij,ij->i", normals, dl)
-        cos_l = -np.einsum("ij,ij->i", self.emitter_normal[e], dl)
+        o64 = origin.astype(np.float64)
+        near = self._near(o64, e)
+        dl = np.empty((k, 3))
+        dist = np.zeros(k)
+        p_light = np.zeros(k)
+        far = np.flatnonzero(~near)
+        if len(far):  # uniform on the triangle (area measure)
+            sq = np.sqrt(r[far, 1])
+            c = self.emitter_corners64[e[far]]
+            q = c[:, 0] + (sq * (1.0 - r[far, 2]))[:, None] * (c[:, 1] - c[:, 0]) \
+                + (sq * r[far, 2])[:, None] * (c[:, 2] - c[:, 0])
+            to = q - o64[far]
+            dist[far] = np.sqrt(np.einsum("ij,ij->i", to, to))
+            dl[far] = to / np.maximum(dist[far], 1e-300)[:, None]
+        close = np.flatnonzero(near)
+        if len(close):  # uniform in the solid angle the triangle subtends (Arvo 1995)
+            dl[close], omega = spherical_triangle_sample(self.emitter_corners64[e[close]] - o64[close, None, :],
+                                                         r[close, 1], r[close, 2])
+            n_l = self.emitter_normal[e[close]].astype(np.float64)
+            v0 = self.emitter_corners64[e[close], 0]
+            denom = np.einsum("ij,ij->i", dl[close], n_l)
+            t = np.einsum("ij,ij->i", v0 - o64[close], n_l) / np.where(denom != 0, denom, 1e-300)
+            dist[close] = np.where((denom != 0) & (t > 0) & (omega > 0), t, 0.0)
+            p_light[close] = np.where(omega > 0, self.emitter_prob[e[close]] / np.maximum(omega, 1e-300), 0.0)
+        cos_y = np.einsum("ij,ij->i", normals.astype(np.float64), dl)
+        cos_l = -np.einsum("ij,ij->i", self.emitter_normal[e].astype(np.float64), dl)
         cos_l = np.where(self.emitter_two_sided[e], np.abs(cos_l), cos_l)
-        ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (r2 > 0))
+        ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (dist > 0))
         if len(ok) == 0:
             return out
-        tmax = np.maximum(dist[ok] - self.eps, 0.0)
-        blocked = self.caster.occluded(origin[ok], dl[ok], tmax)
+        tmax = np.maximum(dist[ok] - self.eps, 0.0).astype(np.float32)
+        blocked = self.caster.occluded(origin[ok], dl[ok].astype(np.float32), tmax)
         stats.shadow_rays += len(ok)
         vis = ok[~blocked]
         if len(vis) == 0:
             return out
-        p_light = self.emitter_pdf_area[e[vis]] * r2[vis] / cos_l[vis]
+        far_vis = ~near[vis]
+        p_light[vis[far_vis]] = self.emitter_pdf_area[e[vis[far_vis]]] * dist[vis[far_vis]] ** 2 / cos_l[vis[far_vis]]
         q = cos_y[vis] * INV_PI
-        out[vis] = self.emitter_radiance[e[vis]] * (q / (p_light + q))[:, None]
+        out[vis] = self.emitter_radiance[e[vis]] * (q / (p_light[vis] + q))[:, None]
         return out
 
-    def _emission_hits(self, d, tri, dist, cos_from):
+    def _near(self, origins, e):
+        """Light-sampling strategy per (point, emitter triangle), as Cycles chooses it: solid-angle
+        sampling when the triangle's longest edge exceeds the point's distance to its plane."""
+        d_plane = np.einsum("ij,ij->i", origins - self.emitter_corners64[e, 0],
+                            self.emitter_normal[e].astype(np.float64))
+        return self.emitter_longest2[e] > d_plane * d_plane
+
+    def _emission_hits(self, origins, d, tri, dist, cos_from):
         """(k, 3) BSDF-sampling half of the MIS estimate for rays (from a vertex y_k, k >= 1)
         that hit an emitter: ``L_e · q / (q + p_L)``, to be multiplied by ``β w``
         (``cos_from``: cos θ of the ray at the vertex it left; q = cos θ / π, see ``_direct``)."""
@@ -490,6 +521,12 @@ class IndirectTracer:
         lit = cos_l > 0
         sel, t, cos_l = sel[lit], t[lit], cos_l[lit]
         p_light = self.triangle_emitter_pdf_area[t] * dist[sel] ** 2 / cos_l
+        e = self.triangle_emitter_index[t]
+        o64 = origins[sel].astype(np.float64)
+        near = self._near(o64, e)
+        if np.any(near):
+            omega = spherical_triangle_solid_angle(self.emitter_corners64[e[near]] - o64[near, None, :])
+            p_light[near] = self.emitter_prob[e[near]] / np.maximum(omega, 1e-300)
         q = cos_from[sel] * INV_PI
         out[sel] = self.scene_emission[t] * (q / (q + p_light))[:, None]
         return out
@@ -533,7 +570,7 @@ class IndirectTracer:
                     L[idx[miss]] += bw[miss] * self.world
                 h = np.flatnonzero(hit)
                 if len(h):
-                    L[idx[h]] += bw[h] * self._emission_hits(d[h], tri[h], dist[h], cos_prev[h])
+                    L[idx[h]] += bw[h] * self._emission_hits(origin[h], d[h], tri[h], dist[h], cos_prev[h])
             if bounce > self.max_bounces:
                 break
             idx, origin, d, w, beta = idx[hit], origin[hit], d[hit], w[hit], beta[hit]
@@ -579,6 +616,50 @@ class IndirectTracer:
                 idx, pos, nrm, d, w, cos_prev, beta = (a[keep] for a in (idx, pos, nrm, d, w, cos_prev, beta))
             bounce += 1
         return L, stats
+
+
+def spherical_triangle_solid_angle(corners):
+    """Solid angle (k,) of triangles ``corners (k, 3, 3)`` given relative to the viewpoint
+    (Van Oosterom & Strackee 1983)."""
+    a, b, c = (corners[:, i] / np.linalg.norm(corners[:, i], axis=1, keepdims=True) for i in range(3))
+    num = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
+    den = 1.0 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c) + np.einsum("ij,ij->i", c, a)
+    return 2.0 * np.arctan2(num, den)
+
+
+def spherical_triangle_sample(corners, u1, u2):
+    """Directions (k, 3) uniform in the solid angle of triangles ``corners (k, 3, 3)`` (relative
+    to the viewpoint) from uniforms ``u1, u2``, and the solid angles (k,) (Arvo 1995).
+
+    The pdf of a returned direction is 1 / solid angle. Degenerate triangles get solid angle 0.
+    """
+    A, B, C = (corners[:, i] / np.linalg.norm(corners[:, i], axis=1, keepdims=True) for i in range(3))
+
+    def unit(v):
+        n = np.linalg.norm(v, axis=1, keepdims=True)
+        return v / np.where(n > 0, n, 1.0)
+
+    def dot(x, y):
+        return np.einsum("ij,ij->i", x, y)
+
+    n_ab, n_ac, n_bc = unit(np.cross(A, B)), unit(np.cross(A, C)), unit(np.cross(B, C))
+    alpha = np.arccos(np.clip(dot(n_ab, n_ac), -1.0, 1.0))
+    beta = np.arccos(np.clip(-dot(n_ab, n_bc), -1.0, 1.0))
+    gamma = np.arccos(np.clip(dot(n_ac, n_bc), -1.0, 1.0))
+    area = alpha + beta + gamma - np.pi
+    omega = spherical_triangle_solid_angle(corners)
+    a_hat = u1 * area
+    s, t = np.sin(a_hat - alpha), np.cos(a_hat - alpha)
+    cos_c = dot(A, B)
+    u = t - np.cos(alpha)
+    v = s + np.sin(alpha) * cos_c
+    den = (v * s + u * t) * np.sin(alpha)
+    q = np.clip(((v * t - u * s) * np.cos(alpha) - v) / np.where(den != 0, den, 1e-300), -1.0, 1.0)
+    c_hat = q[:, None] * A + np.sqrt(np.maximum(1.0 - q * q, 0.0))[:, None] * unit(C - dot(C, A)[:, None] * A)
+    z = 1.0 - u2 * (1.0 - dot(c_hat, B))
+    d = z[:, None] * B + np.sqrt(np.maximum(1.0 - z * z, 0.0))[:, None] * unit(c_hat - dot(c_hat, B)[:, None] * B)
+    ok = (area > 1e-12) & np.isfinite(d).all(axis=1)
+    return np.where(ok[:, None], d, B), np.where(ok, omega, 0.0)
 
 
 def _tangents(n):

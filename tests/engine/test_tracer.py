@@ -245,3 +245,41 @@ def test_cosine_warps_are_shirley_chiu_and_polar():
         np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
         assert_within(d[:, 2], 2.0 / 3.0)
         assert_within((d[:, 2] > 0.5).astype(float), 0.75)
+
+
+@pytest.mark.parametrize("height", [0.02, 0.3, 1.0, 3.0])
+def test_light_sampling_gives_the_form_factor_near_and_far(height):
+    """D_e = (1/π) ∫ L cos θ dω below a square emitter (both MIS halves: light samples with
+    solid-angle sampling close to the light, area sampling far from it, and cosine rays that hit
+    it) equals L F, F the analytic point-to-square form factor."""
+    from lmdp_addon.tracer import spherical_triangle_sample
+    p = scenes.PARALLEL_SQUARES
+    parts = [scenes._quad_part("Emitter", [(-.5, -.5, height), (-.5, .5, height), (.5, .5, height), (.5, -.5, height)],
+                               emission=p["radiance"])]
+    scene = scenes.parts_to_scene_arrays(parts)
+    tracer = IndirectTracer(scene, "UNGUIDED")
+    n = 200_000
+    rng = np.random.default_rng(7)
+    pts = np.tile(np.array([0.2, 0.1, 0.0], np.float32), (n, 1))
+    nrm = np.tile(np.array([0, 0, 1], np.float32), (n, 1))
+    stats = TraceStats()
+    light = tracer._direct(pts, nrm, rng, stats)[:, 0].astype(np.float64)
+    d = tracer._cosine_directions(nrm, rng.random((n, 2)), stratified=False)
+    origin = pts + tracer.eps * nrm
+    tri, dist = tracer.caster.intersect(origin, d)
+    hit = tri >= 0
+    rays = np.zeros(n)
+    cos = np.einsum("ij,ij->i", nrm, d)
+    rays[hit] = tracer._emission_hits(origin[hit], d[hit], tri[hit], dist[hit], cos[hit])[:, 0]
+    near = tracer._near(origin[:1].astype(np.float64), np.array([0]))[0]
+    assert near == (height < np.sqrt(2.0))
+    F = scenes.point_to_parallel_square_form_factor(1.0, height, (-0.2, -0.1))
+    assert_within(light + rays, p["radiance"][0] * F)
+    # Every solid-angle sample points into its triangle.
+    c = scene.corners()[:1] - origin[:1].astype(np.float64)[:, None, :]
+    dirs, omega = spherical_triangle_sample(np.repeat(c, 1000, axis=0), rng.random(1000), rng.random(1000))
+    assert np.all(omega > 0)
+    e1, e2 = c[0, 1] - c[0, 0], c[0, 2] - c[0, 0]
+    M = np.stack([np.broadcast_to(e1, dirs.shape), np.broadcast_to(e2, dirs.shape), -dirs], axis=2)
+    bary = np.linalg.solve(M, np.broadcast_to(-c[0, 0], dirs.shape)[..., None])[..., 0]
+    assert np.all(bary[:, 0] >= -1e-7) and np.all(bary[:, 1] >= -1e-7) and np.all(bary[:, :2].sum(1) <= 1 + 1e-7)
