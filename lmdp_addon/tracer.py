@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .hemisphere import QUARTER_PI, square_to_hemisphere
+from .hemisphere import QUARTER_PI
 from .raycast import RayCaster
 
 INV_PI = 1.0 / np.pi
@@ -121,6 +121,7 @@ class StateGuide:
 
     def __post_init__(self):
         self.frames = np.asarray(self.frames, dtype=np.float64)
+        self.frames32 = self.frames.astype(np.float32)
         self.first = _normalised_rows(self.first)
         self.later = _normalised_rows(self.later)
         self.cdf_first = _row_cdf(self.first)
@@ -171,8 +172,11 @@ class StateGuide:
         t = np.clip((u[:, 0] - lo) / np.where(p > 0, p, 1.0), 0.0, 1.0 - 1e-7)
         su = (k // self.strata_v + t) / self.strata_u
         sv = (k % self.strata_v + u[:, 1]) / self.strata_v
-        local = square_to_hemisphere(su, sv)
-        d = np.einsum("ki,kij->kj", local, self.frames[states])
+        x, y = _concentric32(su, sv)
+        r2 = x * x + y * y
+        lift = np.sqrt(np.maximum(2.0 - r2, 0.0))
+        local = np.stack([x * lift, y * lift, 1.0 - r2], axis=1)  # equal-area lift (hemisphere.py)
+        d = np.einsum("ki,kij->kj", local, self.frames32[states])
         if return_density:
             return d, p * (S / (2.0 * np.pi))
         return d
@@ -180,7 +184,7 @@ class StateGuide:
     def density(self, states, directions, first):
         """g_s(ω) (k,) for world directions ``(k, 3)``: u*(k|s) S / 2π, 0 below s's horizon."""
         prob = self.first if first else self.later
-        local = np.einsum("kij,kj->ki", self.frames[states], directions)
+        local = np.einsum("kij,kj->ki", self.frames32[states], np.asarray(directions, dtype=np.float32))
         k = stratum_of_local(local, self.strata_u, self.strata_v)
         g = prob[states, np.maximum(k, 0)] * (self.n_strata / (2.0 * np.pi))
         return np.where(k >= 0, g, 0.0)
@@ -389,16 +393,7 @@ class IndirectTracer:
         """
         u = np.asarray(u, dtype=np.float32)
         if stratified:
-            a = 2.0 * u[:, 0] - 1.0
-            b = 2.0 * u[:, 1] - 1.0
-            use_a = np.abs(a) > np.abs(b)
-            r = np.where(use_a, a, b)
-            num = np.where(use_a, b, a)
-            ratio = num / np.where(r != 0, r, 1.0)
-            phi = np.where(use_a, np.float32(QUARTER_PI) * ratio,
-                           np.float32(2 * QUARTER_PI) - np.float32(QUARTER_PI) * ratio)
-            x = r * np.cos(phi)
-            y = r * np.sin(phi)
+            x, y = _concentric32(u[:, 0], u[:, 1])
             z = np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
         else:
             r = np.sqrt(u[:, 0])
@@ -618,13 +613,38 @@ class IndirectTracer:
         return L, stats
 
 
+def _concentric32(u, v):
+    """Shirley–Chiu's concentric map of the unit square to the disk in float32 (as
+    ``hemisphere.concentric_square_to_disk``, without its four-way select)."""
+    a = 2.0 * np.asarray(u, dtype=np.float32) - 1.0
+    b = 2.0 * np.asarray(v, dtype=np.float32) - 1.0
+    use_a = np.abs(a) > np.abs(b)
+    r = np.where(use_a, a, b)
+    ratio = np.where(use_a, b, a) / np.where(r != 0, r, 1.0)
+    phi = np.where(use_a, np.float32(QUARTER_PI) * ratio,
+                   np.float32(2 * QUARTER_PI) - np.float32(QUARTER_PI) * ratio)
+    return r * np.cos(phi), r * np.sin(phi)
+
+
+def _dot(x, y):
+    return np.einsum("ij,ij->i", x, y)
+
+
+def _unit(v):
+    n = np.sqrt(_dot(v, v))
+    return v / np.where(n > 0, n, 1.0)[:, None]
+
+
+def _solid_angle_of_units(a, b, c):
+    num = np.abs(_dot(a, np.cross(b, c)))
+    den = 1.0 + _dot(a, b) + _dot(b, c) + _dot(c, a)
+    return 2.0 * np.arctan2(num, den)
+
+
 def spherical_triangle_solid_angle(corners):
     """Solid angle (k,) of triangles ``corners (k, 3, 3)`` given relative to the viewpoint
     (Van Oosterom & Strackee 1983)."""
-    a, b, c = (corners[:, i] / np.linalg.norm(corners[:, i], axis=1, keepdims=True) for i in range(3))
-    num = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
-    den = 1.0 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c) + np.einsum("ij,ij->i", c, a)
-    return 2.0 * np.arctan2(num, den)
+    return _solid_angle_of_units(_unit(corners[:, 0]), _unit(corners[:, 1]), _unit(corners[:, 2]))
 
 
 def spherical_triangle_sample(corners, u1, u2):
@@ -633,31 +653,23 @@ def spherical_triangle_sample(corners, u1, u2):
 
     The pdf of a returned direction is 1 / solid angle. Degenerate triangles get solid angle 0.
     """
-    A, B, C = (corners[:, i] / np.linalg.norm(corners[:, i], axis=1, keepdims=True) for i in range(3))
-
-    def unit(v):
-        n = np.linalg.norm(v, axis=1, keepdims=True)
-        return v / np.where(n > 0, n, 1.0)
-
-    def dot(x, y):
-        return np.einsum("ij,ij->i", x, y)
-
-    n_ab, n_ac, n_bc = unit(np.cross(A, B)), unit(np.cross(A, C)), unit(np.cross(B, C))
-    alpha = np.arccos(np.clip(dot(n_ab, n_ac), -1.0, 1.0))
-    beta = np.arccos(np.clip(-dot(n_ab, n_bc), -1.0, 1.0))
-    gamma = np.arccos(np.clip(dot(n_ac, n_bc), -1.0, 1.0))
+    A, B, C = _unit(corners[:, 0]), _unit(corners[:, 1]), _unit(corners[:, 2])
+    n_ab, n_ac, n_bc = _unit(np.cross(A, B)), _unit(np.cross(A, C)), _unit(np.cross(B, C))
+    alpha = np.arccos(np.clip(_dot(n_ab, n_ac), -1.0, 1.0))
+    beta = np.arccos(np.clip(-_dot(n_ab, n_bc), -1.0, 1.0))
+    gamma = np.arccos(np.clip(_dot(n_ac, n_bc), -1.0, 1.0))
     area = alpha + beta + gamma - np.pi
-    omega = spherical_triangle_solid_angle(corners)
+    omega = _solid_angle_of_units(A, B, C)
     a_hat = u1 * area
     s, t = np.sin(a_hat - alpha), np.cos(a_hat - alpha)
-    cos_c = dot(A, B)
-    u = t - np.cos(alpha)
-    v = s + np.sin(alpha) * cos_c
-    den = (v * s + u * t) * np.sin(alpha)
-    q = np.clip(((v * t - u * s) * np.cos(alpha) - v) / np.where(den != 0, den, 1e-300), -1.0, 1.0)
-    c_hat = q[:, None] * A + np.sqrt(np.maximum(1.0 - q * q, 0.0))[:, None] * unit(C - dot(C, A)[:, None] * A)
-    z = 1.0 - u2 * (1.0 - dot(c_hat, B))
-    d = z[:, None] * B + np.sqrt(np.maximum(1.0 - z * z, 0.0))[:, None] * unit(c_hat - dot(c_hat, B)[:, None] * B)
+    sin_a, cos_a = np.sin(alpha), np.cos(alpha)
+    u = t - cos_a
+    v = s + sin_a * _dot(A, B)
+    den = (v * s + u * t) * sin_a
+    q = np.clip(((v * t - u * s) * cos_a - v) / np.where(den != 0, den, 1e-300), -1.0, 1.0)
+    c_hat = q[:, None] * A + np.sqrt(np.maximum(1.0 - q * q, 0.0))[:, None] * _unit(C - _dot(C, A)[:, None] * A)
+    z = 1.0 - u2 * (1.0 - _dot(c_hat, B))
+    d = z[:, None] * B + np.sqrt(np.maximum(1.0 - z * z, 0.0))[:, None] * _unit(c_hat - _dot(c_hat, B)[:, None] * B)
     ok = (area > 1e-12) & np.isfinite(d).all(axis=1)
     return np.where(ok[:, None], d, B), np.where(ok, omega, 0.0)
 
