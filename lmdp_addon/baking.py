@@ -364,7 +364,9 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
         states = guide.states_at(ts.position, ts.normal, np.full(n_tex, index))
     chunk = max(1, PATHS_PER_UNIT // per_batch)
     units = [(b, lo, min(lo + chunk, n_tex)) for b in range(B) for lo in range(0, n_tex, chunk)]
-    sums = np.zeros((B, n_tex, 3), np.float64)
+    # Running sums of the batch means and their squares: memory O(texels), not O(batches x texels).
+    acc = np.zeros((n_tex, 3), np.float64)
+    acc2 = np.zeros((n_tex, 3), np.float64)
     stats = TraceStats()
     seed = int(settings.seed)
 
@@ -383,10 +385,19 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     total = len(units)
     progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
 
+    pending = {}
+    order = [0]  # next unit to add: sums are formed in unit order, so bakes are bit-identical
+                 # whatever order the threads finish in
+
     def collect(done, outcome):
         unit_id, part, st = outcome
-        b, lo, hi = units[unit_id]
-        sums[b, lo:hi] = part
+        pending[unit_id] = part
+        while order[0] in pending:
+            b, lo, hi = units[order[0]]
+            mean = pending.pop(order[0]) / per_batch
+            acc[lo:hi] += mean
+            acc2[lo:hi] += mean * mean
+            order[0] += 1
         stats.add(st)
         progress.update(done / total, f"{name}: {done}/{total} work units")
 
@@ -403,10 +414,9 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
                 for f in futures:
                     f.cancel()
                 raise
-    batch_means = sums / per_batch
-    value = batch_means.mean(axis=0)
+    value = acc / B
     if B > 1:
-        stderr = batch_means.std(axis=0, ddof=1) / np.sqrt(B)
+        stderr = np.sqrt(np.maximum(acc2 - B * value * value, 0.0) / (B - 1) / B)
     else:
         stderr = np.full_like(value, np.nan)
     image = np.zeros((R, R, 4), np.float32)

@@ -56,7 +56,8 @@ def test_bake_image_layout_margin_and_stats(cornell):
     assert "bake" in r.summary()
 
 
-def test_bake_is_deterministic_for_a_seed_and_independent_of_threads(cornell):
+def test_bake_is_deterministic_for_a_seed_and_independent_of_threads(cornell, monkeypatch):
+    monkeypatch.setattr(baking, "PATHS_PER_UNIT", 96)  # many small units finishing out of order
     a = baking.bake(cornell, ["Floor"], small(seed=3), threads=1).objects[0]
     b = baking.bake(cornell, ["Floor"], small(seed=3), threads=2).objects[0]
     c = baking.bake(cornell, ["Floor"], small(seed=4), threads=2).objects[0]
