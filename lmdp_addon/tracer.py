@@ -340,7 +340,6 @@ class IndirectTracer:
         self.gather = gather if mode == "FINAL_GATHER" else None
         self.alpha = float(np.clip(guide_fraction, 0.0, 1.0)) if self.guide is not None else 0.0
         self.rr_start = int(rr_start)
-        self.guide_depth = 1 << 30
         self.caster = caster or RayCaster(scene)
         self.eps = np.float32(self.caster.offset())
         normals, areas = scene.triangle_geometry()
@@ -593,7 +592,7 @@ class IndirectTracer:
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
-            if self.guide is not None and bounce < self.guide_depth:
+            if self.guide is not None:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, nrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             L[idx] += beta * self._direct(pos, nrm, rng, stats)
