@@ -420,10 +420,14 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         batch_rng = np.random.default_rng([int(seed), 0x11E, int(start)])
         owner = np.repeat(ids, K)
         sample = sampler.stratified(len(ids), K, batch_rng)
-        omega, dist, cos_x, G = connection(points[owner], normals[owner], sample)
+        # The shadow ray starts at the lifted point, so its direction and length are measured
+        # from there: a connection measured from the surface point and traced from the lifted
+        # one misses its target by the lift and grazing rays clip nearby geometry.
+        origin = lifted[owner]
+        omega, dist, cos_x, G = connection(origin.astype(np.float64), normals[owner], sample)
         live = np.flatnonzero(G > 0)
         eps = caster.offset()
-        blocked = caster.occluded(lifted[owner[live]], omega[live], np.maximum(dist[live] * (1 - 1e-4) - 2 * eps, 0.0))
+        blocked = caster.occluded(origin[live], omega[live], np.maximum(dist[live] - eps, 0.0))
         live = live[~blocked]
         local = world_to_local(omega[live], states.frames[owner[live]])
         k = np.maximum(stratum_of_local_direction(local, states.strata_u, states.strata_v), 0)
