@@ -202,12 +202,14 @@ def scene_fingerprint(scene):
     return h.hexdigest()
 
 
-def check_bake_inputs(scene, names, settings, lmdp=None):
+def check_bake_inputs(scene, names, settings, lmdp=None, will_solve=False):
     """Raise :class:`SceneError` / :class:`StageOrderError` (user messages) before any work.
 
     Checks: resolution and samples >= 1, the mode, every object has a UV map, covers at least one
     texel and has no overlapping UVs, the scene has light, GUIDED / FINAL_GATHER have a solution
-    and FINAL_GATHER a PHYSICAL one of this very scene. Returns the warnings to show.
+    and FINAL_GATHER a PHYSICAL one of this very scene. ``will_solve``: the caller solves this
+    scene with ``settings`` before baking (Run All), so only the cost mode is checked. Returns the
+    warnings to show.
     """
     warnings = []
     mode = settings.bake_mode
@@ -245,7 +247,12 @@ def check_bake_inputs(scene, names, settings, lmdp=None):
     if not scene.has_light():
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
                          "shader or Principled emission), an area light, or a non-black world")
-    if mode in ("GUIDED", "FINAL_GATHER"):
+    if will_solve:
+        if mode == "FINAL_GATHER" and settings.cost_mode != "PHYSICAL":
+            raise SceneError("Final Gather reads the outgoing radiance z of the PHYSICAL cost mode: "
+                             f"set Cost Mode to Physical (it is {settings.cost_mode}), or bake with "
+                             "Guided or Unguided")
+    elif mode in ("GUIDED", "FINAL_GATHER"):
         if lmdp is None or lmdp.solution is None:
             raise StageOrderError(f"Solve first (LMDP panel > Solve): {mode} bakes are guided by "
                                   "the optimal policy of the solved states; or use bake mode Unguided")

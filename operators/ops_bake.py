@@ -98,21 +98,30 @@ def session_lmdp(context):
     return lmdp, {k: v for k, v in seconds.items() if v is not None}
 
 
-def bake_inputs(context, settings):
-    """Main thread: capture the scene and check the bake (raises ``LMDPError`` before any work)."""
-    meshes = selected_meshes(context)
-    names = [obj.name for obj in meshes]
+def bake_inputs(context, settings, captured=None):
+    """Main thread: capture the scene and check the bake (raises ``LMDPError`` before any work).
+
+    ``captured``: ``(SceneArrays, names)`` already extracted by a caller that will sample, build
+    and solve that scene before baking (Run All); it fills in ``BakeInputs.lmdp`` itself.
+    """
+    if captured is None:
+        meshes = selected_meshes(context)
+        names = [obj.name for obj in meshes]
+    else:
+        scene, names = captured
     if int(settings.bake_resolution) < 1:
         raise SceneError(f"Bake resolution must be at least 1 pixel (got {settings.bake_resolution})")
-    scene = extract_scene(context, meshes)
+    if captured is None:
+        scene = extract_scene(context, meshes)
     lmdp, seconds = (None, {})
-    if settings.bake_mode != "UNGUIDED":
+    if settings.bake_mode != "UNGUIDED" and captured is None:
         lmdp, seconds = session_lmdp(context)
         if lmdp is None:
             raise StageOrderError(f"Solve first (LMDP panel > Solve, or Run All): the "
                                   f"{settings.bake_mode.replace('_', ' ').title()} bake mode is "
                                   "guided by the solved optimal policy; or choose bake mode Unguided")
-    warnings = list(scene.warnings) + baking.check_bake_inputs(scene, names, settings, lmdp)
+    warnings = ([] if captured is not None else list(scene.warnings)) + \
+        baking.check_bake_inputs(scene, names, settings, lmdp, will_solve=captured is not None)
     output_dir = settings.output_dir
     if output_dir:
         try:

@@ -8,7 +8,7 @@ stages work on that snapshot, so edit the scene and sample again to see the chan
 import os
 
 import bpy
-from bpy.props import StringProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
 from ..lmdp_addon import pipeline
@@ -18,6 +18,7 @@ from ..lmdp_addon.export import export_npz
 from .common import report_error, report_warnings, selected_meshes
 from .extract import extract_scene
 from .jobs import EngineJob
+from .ops_bake import HOOK_UP_ITEMS, apply_bake, bake_inputs, compute_bake
 from .session import format_bytes, session_for
 
 
@@ -128,25 +129,51 @@ class LMDP_OT_solve(EngineJob, bpy.types.Operator):
 
 
 class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
-    """Run every LMDP stage on the selected meshes: sample, build, solve"""
+    """Run every LMDP stage on the selected meshes: sample, build, solve, show the desirability,
+    bake the indirect light"""
 
     bl_idname = "lmdp.run_pipeline"
     bl_label = "Run All"
     bl_options = {'REGISTER'}
     stage = ""  # compute reports its own stages
 
+    show: BoolProperty(
+        name="Show Desirability",
+        description="After solving, colour the selected meshes by z (lmdp.show_desirability)",
+        default=True,
+    )
+    bake: BoolProperty(
+        name="Bake",
+        description="After solving, bake the indirect light of the selected meshes (lmdp.bake; "
+                    "needs a UV map on each)",
+        default=True,
+    )
+    hook_up: EnumProperty(
+        name="Hook Up",
+        description="Bake: also show the lightmap in the object's material",
+        items=HOOK_UP_ITEMS, default='NONE',
+    )
+
     def prepare(self, context):
         scene, names = capture_scene(context)
         s = self.settings
         check_budget(s.point_count, s.strata_count, s.rays_per_stratum, s.memory_budget_gb)
-        return scene, names
+        # Every bake check runs now, before any work (a mesh without UV map is reported here).
+        bake = bake_inputs(context, s, captured=(scene, names)) if self.bake else None
+        return scene, names, bake
 
     def compute(self, inputs, settings, progress):
-        scene, names = inputs
-        return names, pipeline.run_all(scene, settings, progress)
+        scene, names, bake = inputs
+        result = pipeline.run_all(scene, settings, progress)
+        baked = None
+        if bake is not None:
+            bake.lmdp = result
+            bake.precompute_seconds = dict(result.seconds)
+            baked = compute_bake(bake, settings, progress)
+        return names, result, baked
 
     def apply(self, context, result):
-        names, r = result
+        names, r, baked = result
         session = store_scene(context, r.scene, names)
         session.store("states", r.states, seconds=r.seconds["sample"], settings=self.settings)
         session.store("dynamics", r.dynamics, seconds=r.seconds["build"], settings=self.settings)
@@ -156,7 +183,17 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
         if not r.solution.converged:
             self.report({'WARNING'}, f"The {r.solution.solver} solver did not converge: {r.solution.message}")
         total = sum(r.seconds.values())
-        return f"LMDP solved on {', '.join(names)} in {total:.2f} s: {r.solution.summary()}"
+        message = f"LMDP solved on {', '.join(names)} in {total:.2f} s: {r.solution.summary()}"
+        if baked is not None:
+            bake_message, warnings = apply_bake(context, baked, self.settings, self.hook_up)
+            session.store("bake", baked, seconds=baked.seconds.get("bake"), settings=self.settings)
+            report_warnings(self, warnings)
+            message += f"; {bake_message}"
+        if self.show:
+            # The display operator reads the session just stored; it reports its own skips.
+            if 'FINISHED' not in bpy.ops.lmdp.show_desirability('EXEC_DEFAULT'):
+                self.report({'WARNING'}, "Show Desirability did not finish (see its message)")
+        return message
 
 
 class LMDP_OT_export_npz(bpy.types.Operator, ExportHelper):

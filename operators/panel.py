@@ -140,8 +140,14 @@ class LMDP_PT_main(bpy.types.Panel):
             box.label(text=f"{stage} {100.0 * fraction:.0f}% {message}".strip())
             box.label(text="Press Esc to cancel")
 
-        _operator(layout, "lmdp.run_pipeline", text="Run All", icon='PLAY',
-                  enabled=job is None and _has_mesh_selection(context))
+        if operator_available("lmdp.run_pipeline"):
+            props = context.scene.lmdp
+            row = layout.row(align=True)
+            row.enabled = job is None and _has_mesh_selection(context)
+            op = row.operator("lmdp.run_pipeline", text="Run All", icon='PLAY')
+            op.show, op.bake = props.run_all_show, props.run_all_bake
+            row.prop(props, "run_all_show", toggle=True)
+            row.prop(props, "run_all_bake", toggle=True)
 
         box = layout.box()
         meshes = [obj.name for obj in context.selected_objects if obj.type == 'MESH']

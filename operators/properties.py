@@ -235,6 +235,19 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         default=True,
     )
 
+    # -- Run All ------------------------------------------------------------------------------------
+    run_all_show: BoolProperty(
+        name="Show",
+        description="Run All also shows the desirability on the selected meshes (Show Desirability)",
+        default=True,
+    )
+    run_all_bake: BoolProperty(
+        name="Bake",
+        description="Run All also bakes the indirect light of the selected meshes (Bake; every "
+                    "selected mesh needs a UV map)",
+        default=True,
+    )
+
     # -- Internal -----------------------------------------------------------------------------------
     session_id: StringProperty(
         name="Session ID",

@@ -11,19 +11,21 @@ With the PyPI bpy module (``make venv``)::
 
 Options: ``--objects A,B`` (meshes that carry the states; default: every visible mesh that is not
 an emitter), ``--set key=value`` (any ``scene.lmdp`` setting, repeatable), ``--dry-run`` (load,
-select and configure, write ``summary.json``, run nothing), ``--pictures`` / ``--no-pictures``
+select and configure, write ``summary.json``, run nothing), ``--bake`` / ``--no-bake`` (bake the
+lightmaps; by default when every mesh has a UV map), ``--pictures`` / ``--no-pictures``
 (render the solution with the scene camera; on by default with ``--demo``).
 
 It loads the extension (an installed ``bl_ext.*.lmdp_light_transport`` if there is one, otherwise
 this checkout through a temporary extension repository), selects the meshes, runs
-``bpy.ops.lmdp.run_pipeline()`` (or, while that operator does not exist yet, every stage operator
-that does), exports ``lmdp.npz`` when ``lmdp.export_npz`` exists, and writes into ``--output``:
+``bpy.ops.lmdp.run_pipeline()`` (sample, build, solve, show, bake; or, while that operator does
+not exist yet, every stage operator that does), exports ``lmdp.npz`` when ``lmdp.export_npz`` exists, and writes into ``--output``:
 ``summary.json`` (objects, settings, steps with timings, errors) and ``<name>_lmdp.blend`` (a copy
 of the scene with the results). Bakes go to ``--output`` too (``scene.lmdp.output_dir``).
 With pictures, Cycles renders (Standard view transform) of ``<name>_z.png`` (z as colours,
 ``lmdp.show_desirability`` + ``lmdp.view_desirability(target='RENDER')``), ``<name>_policy.png``
 (``lmdp.show_policy(as_mesh=True)`` in the lit scene), ``<name>_probe.png`` (``lmdp.probe_policy``)
-and, when matplotlib is importable, ``<name>_z_legend.png`` (the z picture with its colour bar).
+``<name>_lightmaps.png`` (the baked lightmaps on their objects) and, when matplotlib is
+importable, ``<name>_z_legend.png`` (the z picture with its colour bar).
 Exit status: 0 on success, 1 when a step fails (its message is printed), 2 for bad arguments.
 """
 import argparse
@@ -80,6 +82,9 @@ def build_parser():
     parser.add_argument("--pictures", action=argparse.BooleanOptionalAction, default=None,
                         help="render z, the policy arrows and a probe with the scene camera into "
                         "--output (default: on with --demo, off for a .blend file)")
+    parser.add_argument("--bake", action=argparse.BooleanOptionalAction, default=None,
+                        help="bake the indirect light of the meshes into --output (default: on when "
+                        "every mesh that carries states has a UV map; --bake insists and fails otherwise)")
     return parser
 
 
@@ -244,11 +249,12 @@ def run_operator(common, idname, steps, **kwargs):
     return result
 
 
-def run_pipeline(common, output, steps):
+def run_pipeline(common, output, steps, bake=True):
     if common.operator_available("lmdp.run_pipeline"):
-        run_operator(common, "lmdp.run_pipeline", steps)
+        run_operator(common, "lmdp.run_pipeline", steps, bake=bake)
     else:
-        stages = [idname for idname in STAGE_OPERATORS if common.operator_available(idname)]
+        stages = [idname for idname in STAGE_OPERATORS if common.operator_available(idname)
+                  and (bake or idname != "lmdp.bake")]
         if not stages:
             raise StepError("this build of the extension has no LMDP pipeline operators yet "
                             "(neither lmdp.run_pipeline nor any stage operator is registered)")
@@ -358,7 +364,34 @@ def render_pictures(common, extension, output, name, steps, explicit, demo):
         _hide_generated("probe", False)
         pictures["probe"] = render_picture(scene, os.path.join(output, f"{name}_probe.png"), PICTURE_SAMPLES["lit"], steps)
         _hide_generated("policy", False)
+
+    lightmaps = lightmap_picture(extension, scene, os.path.join(output, f"{name}_lightmaps.png"), steps)
+    if lightmaps:
+        pictures["lightmaps"] = lightmaps
     return pictures
+
+
+def lightmap_picture(extension, scene, path, steps):
+    """The baked lightmaps shown on their objects (each object's preview material: emission =
+    its ``<object>_lmdp_indirect`` image, i.e. E_ind/π as baked, no albedo), rendered like the z
+    picture; the materials are restored afterwards. None when nothing was baked."""
+    import bpy
+    ops_bake = submodule(extension, "operators.ops_bake")
+    baked = [(obj, ops_bake.own_image(obj.name)) for obj in scene.objects if obj.type == 'MESH']
+    baked = [(obj, image) for obj, image in baked if image is not None]
+    if not baked:
+        return None
+    for obj, image in baked:
+        ops_bake.hook_preview(obj, image)
+    _hide_generated("policy", True)
+    _hide_generated("probe", True)
+    try:
+        return render_picture(scene, path, PICTURE_SAMPLES["z"], steps)
+    finally:
+        for obj, _image in baked:
+            ops_bake.unhook_preview(obj)
+        _hide_generated("policy", False)
+        _hide_generated("probe", False)
 
 
 def scene_size(extension, scene):
@@ -462,7 +495,15 @@ def main(argv=None):
 
         if not args.dry_run:
             try:
-                run_pipeline(common, output, summary["steps"])
+                bake = args.bake
+                if bake is None:
+                    no_uv = [obj.name for obj in objects if not obj.data.uv_layers]
+                    bake = not no_uv
+                    if no_uv:
+                        print(f"[LMDP] no bake: {', '.join(sorted(no_uv))} ha{'s' if len(no_uv) == 1 else 've'} "
+                              "no UV map (add one, or pass --bake to insist)", flush=True)
+                summary["bake"] = bake
+                run_pipeline(common, output, summary["steps"], bake=bake)
                 pictures = args.pictures if args.pictures is not None else bool(args.demo)
                 if pictures:
                     explicit = {item.partition("=")[0].strip() for item in args.settings}

@@ -57,7 +57,7 @@ def test_unguided_bake_writes_tagged_float_images(cornell, lmdp_ext):
 def test_output_folder_gets_exr_files_and_statistics(cornell, lmdp_ext, tmp_path):
     cornell.lmdp.output_dir = str(tmp_path / "bakes")
     only("Floor")
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     cornell.lmdp.bake_mode = 'GUIDED'
     assert bpy.ops.lmdp.bake() == {'FINISHED'}
     files = sorted(os.listdir(tmp_path / "bakes"))
@@ -74,6 +74,52 @@ def test_output_folder_gets_exr_files_and_statistics(cornell, lmdp_ext, tmp_path
     assert floor["texels"] == 256 and floor["samples"] == 8 and floor["rays"] > 256 * 8
     assert set(floor["seconds"]) >= {"sample", "build", "solve", "bake"}
     assert all(v >= 0 for v in floor["seconds"].values())
+
+
+def attribute_names(name):
+    return sorted(a.name for a in bpy.data.objects[name].data.attributes if a.name.startswith("lmdp_"))
+
+
+def test_run_all_samples_builds_solves_shows_and_bakes(cornell, lmdp_ext, tmp_path):
+    """lmdp.run_pipeline is every stage: the session holds each stage's result, the meshes carry
+    the z colours, the lightmaps are guided by this very solution and written to output_dir."""
+    cornell.lmdp.output_dir = str(tmp_path)
+    cornell.lmdp.bake_mode = 'GUIDED'
+    only("Floor", "TallBox")
+    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    s = session(lmdp_ext, cornell)
+    for stage in ("states", "dynamics", "solution", "bake", "display"):
+        assert s.has(stage), stage
+    for name in ("Floor", "TallBox"):
+        assert {"lmdp_z", "lmdp_z_color"} <= set(attribute_names(name))
+        assert s.require("bake").object(name).value.mean() > 0.01
+        assert (tmp_path / f"{name}_lmdp_indirect.exr").exists()
+    stats = json.loads((tmp_path / "bake_stats.json").read_text())
+    assert stats["mode"] == "GUIDED" and stats["objects"]["Floor"]["seconds"]["solve"] > 0
+    # The same seed through the stage operators gives the same lightmap, texel for texel.
+    run_all = s.require("bake").object("Floor").value.copy()
+    for op in (bpy.ops.lmdp.sample_states, bpy.ops.lmdp.build_dynamics, bpy.ops.lmdp.solve, bpy.ops.lmdp.bake):
+        assert op() == {'FINISHED'}
+    np.testing.assert_array_equal(s.require("bake").object("Floor").value, run_all)
+
+
+def test_run_all_checks_the_bake_before_any_work(lit_scene, lmdp_ext):
+    """A mesh without UV map stops Run All before sampling (nothing stored, nothing written);
+    with bake=False the same selection runs."""
+    floor, box = lit_scene["Floor"], lit_scene["Box"]
+    while box.data.uv_layers:
+        box.data.uv_layers.remove(box.data.uv_layers[0])
+    box.data.update()
+    select([floor, box])
+    scene = bpy.context.scene
+    before = data_snapshot()
+    with pytest.raises(RuntimeError, match="No UV map on Box"):
+        bpy.ops.lmdp.run_pipeline()
+    assert not session(lmdp_ext, scene).has("states")
+    assert data_snapshot() == before and attribute_names("Floor") == []
+    assert bpy.ops.lmdp.run_pipeline(bake=False) == {'FINISHED'}
+    assert session(lmdp_ext, scene).has("solution") and not session(lmdp_ext, scene).has("bake")
+    assert "lmdp_z" in attribute_names("Floor")
 
 
 def test_rebake_replaces_only_its_own_image(cornell, lmdp_ext):
@@ -120,7 +166,7 @@ def test_guided_modes_without_a_solution_are_refused(cornell):
 def test_final_gather_needs_physical_mode(cornell):
     only("Floor", "Ceiling")
     cornell.lmdp.cost_mode = 'THESIS'
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     cornell.lmdp.bake_mode = 'FINAL_GATHER'
     before = data_snapshot()
     with pytest.raises(RuntimeError, match="PHYSICAL"):

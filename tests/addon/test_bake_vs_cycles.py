@@ -114,7 +114,7 @@ def test_cornell_floor_matches_cycles_at_low_resolution(fresh_scene, lmdp_ext, d
     if mode == "GUIDED":
         fresh_scene.lmdp.point_count = 1024
         select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
-        assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+        assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     ob = lmdp_bake(lmdp_ext, "Floor", mode, 16, 512)
     covered = np.zeros((16, 16), bool)
     covered[ob.texels.row, ob.texels.col] = True
@@ -146,7 +146,7 @@ def test_converges_to_cycles_at_high_samples(fresh_scene, lmdp_ext, demo, name, 
     refs = reference(lmdp_ext, demo, name, R, 8192)
     if mode == "GUIDED":
         select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
-        assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+        assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     errors = []
     for samples in (256, 1024, 4096):
         ob = lmdp_bake(lmdp_ext, name, mode, R, samples)
@@ -171,7 +171,7 @@ def test_guided_has_lower_variance_than_unguided_through_a_narrow_opening(fresh_
     build("NARROW_OPENING", lmdp_ext)
     select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
     fresh_scene.lmdp.strata_u = fresh_scene.lmdp.strata_v = 8
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     un = lmdp_bake(lmdp_ext, "RoomAFloor", "UNGUIDED", 64, 128)
     gu = lmdp_bake(lmdp_ext, "RoomAFloor", "GUIDED", 64, 128)
     up = un.texels.normal[:, 2] > 0.5
@@ -196,7 +196,7 @@ def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
     for points in (2048, 8192):
         select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
         fresh_scene.lmdp.point_count = points
-        assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+        assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
         ob = lmdp_bake(lmdp_ext, "Floor", "FINAL_GATHER", 32, 256)
         ours, cyc, var_o, var_c = compare(ob, refs)
         lum = np.array([0.2126, 0.7152, 0.0722])

@@ -22,7 +22,7 @@ def cornell(fresh_scene):
 
 @pytest.fixture
 def solved(cornell):
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     return cornell
 
 
@@ -120,7 +120,7 @@ def test_thesis_mode_and_quantities(solved, lmdp_ext):
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     assert "lmdp_z_rgb" in floor.attributes
     solved.lmdp.cost_mode = 'THESIS'
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     lam = session(lmdp_ext).require("solution").lambda_
     solved.lmdp.display_quantity = 'COST_TO_GO'
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
@@ -196,7 +196,7 @@ def test_dense_mesh_gets_no_modifier_and_thin_walls_do_not_bleed(fresh_scene, lm
     fresh_scene.lmdp.point_count = 300            # states ~8 cm apart, edges 4 cm: dense enough
     fresh_scene.lmdp.rays_per_stratum = 2
     fresh_scene.lmdp.display_subdivide = True
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     assert not slab.modifiers                                # fine enough already
     mesh = slab.data
@@ -461,7 +461,7 @@ def test_sampling_again_on_the_subdivided_display_keeps_it(solved, lmdp_ext):
     floor = bpy.data.objects["Floor"]
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     corners_before = len(evaluated(floor, "lmdp_z")[0])
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     arrays = session(lmdp_ext).require("scene_arrays")
     assert np.count_nonzero(arrays.triangle_object == arrays.object_names.index("Floor")) > 2  # subdivided
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}

@@ -88,6 +88,27 @@ def test_full_run_on_a_saved_file(repo_root, tmp_path, scene_file, lmdp_ext):
     assert os.path.isfile(summary["result_blend"])
     if common.operator_available("lmdp.export_npz"):
         assert (output / "lmdp.npz").is_file()
+    # Every mesh has a UV map: Run All bakes them into --output.
+    assert summary["bake"] is True
+    for name in summary["objects"]:
+        assert (output / f"{name}_lmdp_indirect.exr").is_file()
+    assert json.loads((output / "bake_stats.json").read_text())["settings"]["bake_resolution"] == 16
+
+
+def test_meshes_without_uv_map_skip_the_bake_unless_asked(repo_root, tmp_path, lit_scene):
+    box = lit_scene["Box"]
+    while box.data.uv_layers:
+        box.data.uv_layers.remove(box.data.uv_layers[0])
+    path = tmp_path / "no_uv.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)
+    output = tmp_path / "out"
+    run = run_script(repo_root, tmp_path, str(path), "--output", str(output), "--set", "point_count=64")
+    assert run.returncode == 0, run.stderr
+    assert "no bake: Box has no UV map" in run.stdout
+    assert read_summary(output)["bake"] is False and not (output / "bake_stats.json").exists()
+    run = run_script(repo_root, tmp_path, str(path), "--output", str(tmp_path / "insist"),
+                     "--set", "point_count=64", "--bake")
+    assert run.returncode == 1 and "No UV map on Box" in run.stderr
 
 
 def test_demo(repo_root, tmp_path, lmdp_ext):

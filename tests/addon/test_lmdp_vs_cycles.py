@@ -37,7 +37,7 @@ def test_refinement_converges_towards_cycles(lmdp_ext, fresh_scene):
     bias, rmse = [], []
     for points in (1000, 16000):
         s.point_count = points
-        assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+        assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
         sess = session.session_for(fresh_scene)
         arrays, states, sol = sess.require("scene_arrays"), sess.require("states"), sess.require("solution")
         tex = floor_texels(lmdp_ext, arrays, R)

@@ -129,7 +129,7 @@ def test_sections_draw_status_legend_and_tools(lit_scene, lmdp_ext):
     assert not any("states" in text for text in empty["Sample"].labels())
     context.scene.lmdp.point_count = 300
     context.scene.lmdp.rays_per_stratum = 2
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     assert bpy.ops.lmdp.show_policy() == {'FINISHED'}
     layouts = draw_all(panel, context)

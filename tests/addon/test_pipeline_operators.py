@@ -78,7 +78,7 @@ def test_run_pipeline_and_export_npz(lmdp_ext, cornell, tmp_path):
     import bpy
     s = session(lmdp_ext, cornell)
     cornell.lmdp.cost_mode = 'THESIS'
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     sol = s.require("solution")
     assert sol.cost_mode == "THESIS" and sol.converged
     path = tmp_path / "cornell.npz"
@@ -94,7 +94,7 @@ def test_run_pipeline_and_export_npz(lmdp_ext, cornell, tmp_path):
 
 def test_export_to_output_dir_and_missing_folder(lmdp_ext, cornell, tmp_path):
     import bpy
-    assert bpy.ops.lmdp.run_pipeline() == {'FINISHED'}
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     cornell.lmdp.output_dir = str(tmp_path)
     assert bpy.ops.lmdp.export_npz() == {'FINISHED'}
     assert (tmp_path / "lmdp.npz").exists()
