@@ -7,7 +7,7 @@ pointing at a temporary directory so that the user's own Blender setup is never 
 Scenes come from ``operators.demo_scenes.build_demo_scene`` (the same parts as
 ``lmdp_addon.scenes``) and bakes from ``operators.demo_scenes.bake_cycles``
 (``bpy.ops.object.bake(type='DIFFUSE', pass_filter={'INDIRECT'})`` into a scratch float image,
-adaptive sampling off, user state restored).
+adaptive sampling and indirect clamping off, user state restored).
 """
 import importlib
 import os
@@ -61,12 +61,13 @@ class BlenderSession:
 
     def bake(self, object_name, resolution, samples, seed, max_bounces):
         """Cycles' DIFFUSE / INDIRECT bake of ``object_name``: (R, R, 4) float32, row 0 at the
-        bottom, uncovered pixels = :data:`SENTINEL` (margin 0). Adaptive sampling is off
-        (``bake_cycles``); total and diffuse bounces = ``max_bounces``."""
+        bottom, uncovered pixels = :data:`SENTINEL` (margin 0). Adaptive sampling and indirect
+        clamping are off (unbiased, like the engine); total and diffuse bounces = ``max_bounces``."""
         obj = self.bpy.data.objects[object_name]
         return self.demo.bake_cycles(self.bpy.context, obj, 'DIFFUSE', ('INDIRECT',), int(resolution),
                                      samples=int(samples), margin=0, margin_type='EXTEND',
-                                     fill=SENTINEL, max_bounces=int(max_bounces), seed=int(seed))
+                                     fill=SENTINEL, max_bounces=int(max_bounces), seed=int(seed),
+                                     clamp_indirect=0.0)
 
     def close(self):
         try:

@@ -259,7 +259,7 @@ def _what_is_timed():
         "**What is timed** (`time.perf_counter` around the calls, medians over the repeats): "
         "*Cycles*: `operators.demo_scenes.bake_cycles` = `bpy.ops.object.bake(type='DIFFUSE', "
         "pass_filter={'INDIRECT'})` of the receiver into a scratch float image (Cycles' scene sync, BVH, "
-        "sampling, readback; adaptive sampling and denoising off, margin 0). "
+        "sampling, readback; adaptive sampling, denoising and indirect clamping (`sample_clamp_indirect`) off, margin 0). "
         "*LMDP precompute* (GUIDED, FINAL_GATHER): `pipeline.run_sample`, `run_build`, `run_solve`, the "
         "engine calls of the `lmdp.sample_states` / `build_dynamics` / `solve` operators, each timed. "
         "*LMDP bake*: `baking.bake`, the engine call of `lmdp.bake` (input checks, ray-caster BVH, guide "

@@ -170,14 +170,16 @@ def _scratch_material():
 
 def bake_cycles(context, obj, bake_type='DIFFUSE', pass_filter=('INDIRECT',), resolution=128,
                 samples=None, margin=0, margin_type='EXTEND', uv_map="", fill=0.0,
-                normal_space='OBJECT', max_bounces=None, seed=None):
+                normal_space='OBJECT', max_bounces=None, seed=None, clamp_indirect=None):
     """Bake ``obj`` with Cycles into a scratch image and return its pixels (R, R, 4) float32.
 
     The image is a new float image filled with ``fill`` (uncovered pixels keep it: pass a
     sentinel to find the covered texels; ``use_clear`` is off). Pixel rows start at the bottom.
     ``bake_type``: 'DIFFUSE' (with ``pass_filter`` e.g. ('INDIRECT',)), 'POSITION', 'NORMAL'
     (``normal_space`` 'OBJECT' encodes n/2 + 0.5), ... ``samples`` (default: the scene's) with
-    adaptive sampling off; ``max_bounces`` sets Cycles' total and diffuse bounces for the bake.
+    adaptive sampling off; ``max_bounces`` sets Cycles' total and diffuse bounces for the bake;
+    ``clamp_indirect`` sets ``sample_clamp_indirect`` (0: off, an unbiased bake; None: the scene's,
+    Cycles' default 10 clips the brightest indirect paths).
 
     Nothing the user had changes: the scratch image nodes, the image and any scratch material are
     removed, and the selection, active object, active node of every material and the render
@@ -194,6 +196,7 @@ def bake_cycles(context, obj, bake_type='DIFFUSE', pass_filter=('INDIRECT',), re
         "diffuse_bounces": cycles.diffuse_bounces,
         "seed": cycles.seed,
         "device": cycles.device,
+        "sample_clamp_indirect": cycles.sample_clamp_indirect,
     }
     saved_selection = [o for o in view_layer.objects if o.select_get(view_layer=view_layer)]
     saved_active = view_layer.objects.active
@@ -224,6 +227,8 @@ def bake_cycles(context, obj, bake_type='DIFFUSE', pass_filter=('INDIRECT',), re
             cycles.diffuse_bounces = int(max_bounces)
         if seed is not None:
             cycles.seed = int(seed)
+        if clamp_indirect is not None:
+            cycles.sample_clamp_indirect = float(clamp_indirect)
         for o in saved_selection:
             o.select_set(False)
         obj.hide_select = False
