@@ -416,20 +416,32 @@ def _bake_verdicts(results):
             out.append((text, "not measured in this run"))
             continue
         guided = [m["name"] for m in case["methods"] if m["family"] == "GUIDED"]
-        met, missed = [], []
+        met, missed, open_ = [], [], []
         for row in case["ratios"]:
             cands = [(r["ratio"] if r["kind"] != "never" else math.inf, n, r)
                      for n in guided if (r := row["methods"].get(n)) is not None]
             if not cands:
                 continue
-            _, name, r = min(cands, key=lambda c: c[0])
-            ok = r["status"] == "wins" and r["ratio"] <= limit
-            (met if ok else missed).append(f"N = {row['cycles_samples']}: {r['text']} ({name})")
+            label = lambda c: f"N = {row['cycles_samples']}: {c[2]['text']} ({c[1]})"  # noqa: E731
+            winners = [c for c in cands if c[2]["status"] == "wins" and c[0] <= limit]
+            # An undecided bound below the limit: that configuration's ladder stops too early.
+            pending = [c for c in cands if c[2]["status"] == "undecided" and c[0] < limit]
+            decided = [c for c in cands if c[2]["status"] != "undecided"]
+            if winners:
+                met.append(label(min(winners, key=lambda c: c[0])))
+            elif pending:
+                open_.append(label(min(pending, key=lambda c: c[0])))
+            elif decided:
+                missed.append(label(min(decided, key=lambda c: c[0])))
+            else:
+                open_.append(label(min(cands, key=lambda c: c[0])))
         res = case["resolution"]
-        verdict = ("**met**" if met and not missed else "**missed**" if missed and not met else
-                   "**partly met**" if met else "not measured")
+        verdict = ("**met**" if met and not missed and not open_ else
+                   "**missed**" if missed and not met and not open_ else
+                   "**partly met**" if met else "**missed** where decided" if missed else "undecided")
         out.append((f"{text} ({res}x{res}; limit {limit:g} x, best GUIDED configuration per N)",
-                    f"{verdict}. Met at: {', '.join(met) or 'none'}. Missed at: {', '.join(missed) or 'none'}."))
+                    f"{verdict}. Met at: {', '.join(met) or 'none'}. Missed at: {', '.join(missed) or 'none'}. "
+                    f"Undecided (the configuration's ladder ends first) at: {', '.join(open_) or 'none'}."))
     gathers = []
     for key, case in bake.items():
         for m in case["methods"]:
@@ -653,7 +665,9 @@ def readme_block(results):
         for m in case["methods"]:
             r = row["methods"].get(m["name"])
             if r is not None and m["family"] in ("UNGUIDED", "GUIDED", "FINAL_GATHER"):
-                cells.append(f"{m['name']} {r['text']}")
+                note = {"undecided": " (undecided: its ladder ends first)", "loses": " (loses)",
+                        "wins": " (wins)"}.get(r["status"], "")
+                cells.append(f"{m['name']} {r['text']}{note}")
         lines.append(f"- {case['title']} ({case['resolution']}²): time to reach Cycles' error at "
                      f"{row['cycles_samples']} samples ({fmt_s(row['cycles_seconds'])}), relative to Cycles: "
                      + "; ".join(cells) + " (above 1: slower than Cycles).")
