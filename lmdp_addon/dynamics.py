@@ -117,21 +117,27 @@ class PassiveDynamics:
                 f"{100 * c.get('void', 0) / total:.1f}% to the void")
 
 
-def estimate_build_bytes(n_points, n_strata, rays_per_stratum):
+def estimate_build_bytes(n_points, n_strata, rays_per_stratum, light_samples=0, n_triangles=0):
     """Upper estimate of the peak memory of :func:`build_passive_dynamics` (bytes).
 
-    Every ray can become a non-zero of the stratum-resolved matrix and of P (8 bytes each as
-    float32 value + int32 index, twice during assembly), plus one batch of ray arrays.
+    Terms, with coefficients measured (peak resident memory of the build in its own process,
+    ``bench/worker.py``) and rounded up: 32 B per stratum ray (it can become a non-zero of the
+    stratum-resolved matrix and of P, float32 + int32, twice during assembly; measured 18 B),
+    48 B per light sample (measured 47 B), 1 KiB per point (state arrays, the locator's grid
+    of about 16 cells per point), 256 B per triangle (the embree BVH and per-triangle tables),
+    200 B per ray of one batch of ray arrays, and 8 MiB of fixed overhead. Measured against
+    this estimate: 19.6 / 23.7 MiB at 1000 points, 344 / 383 MiB at 62 500 points (4 x 4
+    strata, 4 rays, 32 light samples; Cornell box), 159 / 204 MiB at 8000 points on the
+    249 k-triangle heavy scene.
     """
     rays = int(n_points) * int(n_strata) * int(rays_per_stratum)
-    per_nonzero = 8 * 2 * 2
-    batch = min(rays, RAYS_PER_BATCH) * 200
-    return rays * per_nonzero + (n_points * n_strata + n_points) * 8 + batch
+    return (32 * rays + 48 * int(n_points) * int(light_samples) + 1024 * int(n_points)
+            + 256 * int(n_triangles) + 200 * min(rays, RAYS_PER_BATCH) + 8 * 1024 ** 2)
 
 
-def check_budget(n_points, n_strata, rays_per_stratum, budget_gb):
+def check_budget(n_points, n_strata, rays_per_stratum, budget_gb, light_samples=0, n_triangles=0):
     """Raise :class:`BudgetError` when the estimated build memory exceeds ``budget_gb``."""
-    need = estimate_build_bytes(n_points, n_strata, rays_per_stratum)
+    need = estimate_build_bytes(n_points, n_strata, rays_per_stratum, light_samples, n_triangles)
     if budget_gb is not None and need > budget_gb * 1024 ** 3:
         raise BudgetError(
             f"Building the dynamics for {n_points} points x {n_strata} strata x "
@@ -366,7 +372,7 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
     if R < 1:
         raise BudgetError(f"Rays per Stratum must be at least 1 (got {R})")
     m, S = states.n_points, states.n_strata
-    check_budget(m, S, R, memory_budget_gb)
+    check_budget(m, S, R, memory_budget_gb, light_samples, scene.n_triangles)
     caster = caster or RayCaster(scene)
     tri_emitter, emitter_radiance = scene.emitter_groups()
     E = len(emitter_radiance)

@@ -57,7 +57,8 @@ def run_build(scene, states, settings, progress=None):
     if states is None:
         raise StageOrderError("Sample the states first (LMDP > Sample States)")
     progress = _progress(progress)
-    check_budget(states.n_points, states.n_strata, settings.rays_per_stratum, settings.memory_budget_gb)
+    check_budget(states.n_points, states.n_strata, settings.rays_per_stratum, settings.memory_budget_gb,
+                 settings.light_samples, scene.n_triangles)
     progress.begin("build")
     dynamics = build_passive_dynamics(scene, states, settings.rays_per_stratum, seed=settings.seed,
                                       progress=progress, memory_budget_gb=settings.memory_budget_gb,

@@ -78,7 +78,8 @@ class LMDP_OT_build_dynamics(EngineJob, bpy.types.Operator):
         states = session.require("states")
         scene = session.require("scene_arrays")
         s = self.settings
-        check_budget(states.n_points, states.n_strata, s.rays_per_stratum, s.memory_budget_gb)
+        check_budget(states.n_points, states.n_strata, s.rays_per_stratum, s.memory_budget_gb,
+                     s.light_samples, scene.n_triangles)
         return scene, states
 
     def compute(self, inputs, settings, progress):
@@ -157,7 +158,8 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
     def prepare(self, context):
         scene, names = capture_scene(context)
         s = self.settings
-        check_budget(s.point_count, s.strata_count, s.rays_per_stratum, s.memory_budget_gb)
+        check_budget(s.point_count, s.strata_count, s.rays_per_stratum, s.memory_budget_gb,
+                     s.light_samples, scene.n_triangles)
         # Every bake check runs now, before any work (a mesh without UV map is reported here).
         bake = bake_inputs(context, s, captured=(scene, names)) if self.bake else None
         return scene, names, bake
