@@ -421,7 +421,9 @@ class LMDP_OT_bake(EngineJob, bpy.types.Operator):
 
     bl_idname = "lmdp.bake"
     bl_label = "Bake Indirect Light"
-    bl_options = {'REGISTER'}
+    # Undo removes the new images and the material hook-up (pixel buffers of re-baked images
+    # are not part of Blender's undo; the previous EXR files stay replaced).
+    bl_options = {'REGISTER', 'UNDO'}
     stage = ""  # compute reports one stage per object
 
     hook_up: EnumProperty(

@@ -135,7 +135,7 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
 
     bl_idname = "lmdp.run_pipeline"
     bl_label = "Run All"
-    bl_options = {'REGISTER'}
+    bl_options = {'REGISTER', 'UNDO'}  # Show and Bake write Blender data (see lmdp.bake)
     stage = ""  # compute reports its own stages
 
     show: BoolProperty(
