@@ -153,3 +153,19 @@ def test_sections_draw_status_legend_and_tools(lit_scene, lmdp_ext):
         assert "lmdp.bake" in bake.operators()
     else:  # the bake module is not registered in this build: the panel says so instead
         assert any("not part of this build" in t for t in bake.labels())
+
+
+def test_run_all_button_carries_the_show_and_bake_toggles(lit_scene, lmdp_ext):
+    """The main panel's Run All passes scene.lmdp.run_all_show / run_all_bake to the operator."""
+    from types import SimpleNamespace
+    panel = lmdp_ext.sub("operators.panel")
+    context = bpy.context
+    select([lit_scene["Floor"]])
+    context.scene.lmdp.run_all_bake = False
+    fake = SimpleNamespace(layout=Recorder())
+    panel.LMDP_PT_main.draw(fake, context)
+    runs = [entry for entry in fake.layout.log if entry[0] == "operator" and entry[1] == "lmdp.run_pipeline"]
+    assert len(runs) == 1 and runs[0][2] == "Run All"
+    props = runs[0][3]
+    assert props.show is True and props.bake is False
+    assert ("prop", "run_all_show") in fake.layout.log and ("prop", "run_all_bake") in fake.layout.log
