@@ -417,24 +417,27 @@ def _bake_verdicts(results):
             continue
         guided = [m["name"] for m in case["methods"] if m["family"] == "GUIDED"]
         met, missed, open_ = [], [], []
+
+        def label(row, cand):
+            return f"N = {row['cycles_samples']}: {cand[2]['text']} ({cand[1]})"
+
         for row in case["ratios"]:
             cands = [(r["ratio"] if r["kind"] != "never" else math.inf, n, r)
                      for n in guided if (r := row["methods"].get(n)) is not None]
             if not cands:
                 continue
-            label = lambda c: f"N = {row['cycles_samples']}: {c[2]['text']} ({c[1]})"  # noqa: E731
             winners = [c for c in cands if c[2]["status"] == "wins" and c[0] <= limit]
             # An undecided bound below the limit: that configuration's ladder stops too early.
             pending = [c for c in cands if c[2]["status"] == "undecided" and c[0] < limit]
             decided = [c for c in cands if c[2]["status"] != "undecided"]
             if winners:
-                met.append(label(min(winners, key=lambda c: c[0])))
+                met.append(label(row, min(winners, key=lambda c: c[0])))
             elif pending:
-                open_.append(label(min(pending, key=lambda c: c[0])))
+                open_.append(label(row, min(pending, key=lambda c: c[0])))
             elif decided:
-                missed.append(label(min(decided, key=lambda c: c[0])))
+                missed.append(label(row, min(decided, key=lambda c: c[0])))
             else:
-                open_.append(label(min(cands, key=lambda c: c[0])))
+                open_.append(label(row, min(cands, key=lambda c: c[0])))
         res = case["resolution"]
         verdict = ("**met**" if met and not missed and not open_ else
                    "**missed**" if missed and not met and not open_ else

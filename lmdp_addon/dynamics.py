@@ -384,7 +384,6 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
     patterns = DirectionPatterns(states.strata_u, states.strata_v, R, rng)
     sampler = EmitterSampler(scene)
     K = int(light_samples) if not sampler.empty else 0
-    points = states.points
     normals = states.normals
     # Every ray leaves through the upper hemisphere of its point: offset along the normal.
     lifted = (states.points + caster.offset() * states.normals).astype(np.float32)

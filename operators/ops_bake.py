@@ -14,7 +14,8 @@ The operator is thin (``jobs.EngineJob``):
   the previous ones, ``bake_stats.json`` is written, and the optional material hook-up is made.
   A cancelled or failed bake leaves every image and file as it was.
 
-``run_pipeline`` (or any script) can reuse the three pieces: ``bake_inputs(context, settings)``,
+``run_pipeline`` (or any script) can reuse the three pieces: ``bake_inputs(context, settings)``
+(``planned_bake_inputs(scene, names, settings)`` before a solve that is still to come),
 ``compute_bake(inputs, settings, progress)``, ``apply_bake(context, result, settings, hook_up)``.
 
 Images: a float RGBA image of ``bake_resolution``² pixels named ``<object>_lmdp_indirect``,
@@ -98,30 +99,35 @@ def session_lmdp(context):
     return lmdp, {k: v for k, v in seconds.items() if v is not None}
 
 
-def bake_inputs(context, settings, captured=None):
-    """Main thread: capture the scene and check the bake (raises ``LMDPError`` before any work).
-
-    ``captured``: ``(SceneArrays, names)`` already extracted by a caller that will sample, build
-    and solve that scene before baking (Run All); it fills in ``BakeInputs.lmdp`` itself.
-    """
-    if captured is None:
-        meshes = selected_meshes(context)
-        names = [obj.name for obj in meshes]
-    else:
-        scene, names = captured
+def bake_inputs(context, settings):
+    """Main thread: capture the scene and check the bake (raises ``LMDPError`` before any work)."""
+    meshes = selected_meshes(context)
+    names = [obj.name for obj in meshes]
     if int(settings.bake_resolution) < 1:
         raise SceneError(f"Bake resolution must be at least 1 pixel (got {settings.bake_resolution})")
-    if captured is None:
-        scene = extract_scene(context, meshes)
+    scene = extract_scene(context, meshes)
     lmdp, seconds = (None, {})
-    if settings.bake_mode != "UNGUIDED" and captured is None:
+    if settings.bake_mode != "UNGUIDED":
         lmdp, seconds = session_lmdp(context)
         if lmdp is None:
             raise StageOrderError(f"Solve first (LMDP panel > Solve, or Run All): the "
                                   f"{settings.bake_mode.replace('_', ' ').title()} bake mode is "
                                   "guided by the solved optimal policy; or choose bake mode Unguided")
-    warnings = ([] if captured is not None else list(scene.warnings)) + \
-        baking.check_bake_inputs(scene, names, settings, lmdp, will_solve=captured is not None)
+    warnings = list(scene.warnings) + baking.check_bake_inputs(scene, names, settings, lmdp)
+    return _with_output_dir(BakeInputs(scene=scene, names=names, lmdp=lmdp, precompute_seconds=seconds,
+                                       warnings=warnings), settings)
+
+
+def planned_bake_inputs(scene, names, settings):
+    """Main thread: the bake inputs of a caller that has captured ``scene`` and will sample, build
+    and solve it before baking (Run All); it fills in ``BakeInputs.lmdp`` and the precompute
+    times itself. Checks everything the bake can check before the solution exists."""
+    warnings = baking.check_bake_inputs(scene, names, settings, will_solve=True)
+    return _with_output_dir(BakeInputs(scene=scene, names=names, warnings=warnings), settings)
+
+
+def _with_output_dir(inputs, settings):
+    """``inputs`` with ``settings.output_dir``, created (and checked writable) if set."""
     output_dir = settings.output_dir
     if output_dir:
         try:
@@ -131,8 +137,8 @@ def bake_inputs(context, settings, captured=None):
                              "choose another Output Folder or clear it") from error
         if not os.access(output_dir, os.W_OK):
             raise SceneError(f"The output folder {output_dir} is not writable: choose another one")
-    return BakeInputs(scene=scene, names=names, lmdp=lmdp, precompute_seconds=seconds,
-                      warnings=warnings, output_dir=output_dir)
+    inputs.output_dir = output_dir
+    return inputs
 
 
 def compute_bake(inputs, settings, progress):

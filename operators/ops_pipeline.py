@@ -18,7 +18,7 @@ from ..lmdp_addon.export import export_npz
 from .common import report_error, report_warnings, selected_meshes
 from .extract import extract_scene
 from .jobs import EngineJob
-from .ops_bake import HOOK_UP_ITEMS, apply_bake, bake_inputs, compute_bake
+from .ops_bake import HOOK_UP_ITEMS, apply_bake, compute_bake, planned_bake_inputs
 from .session import format_bytes, session_for
 
 
@@ -161,7 +161,7 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
         check_budget(s.point_count, s.strata_count, s.rays_per_stratum, s.memory_budget_gb,
                      s.light_samples, scene.n_triangles)
         # Every bake check runs now, before any work (a mesh without UV map is reported here).
-        bake = bake_inputs(context, s, captured=(scene, names)) if self.bake else None
+        bake = planned_bake_inputs(scene, names, s) if self.bake else None
         return scene, names, bake
 
     def compute(self, inputs, settings, progress):

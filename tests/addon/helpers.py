@@ -30,3 +30,10 @@ def select(objects, active=None):
     for obj in objects:
         obj.select_set(True)
     view_layer.objects.active = active or (objects[0] if objects else None)
+
+
+def remove_uv_maps(obj):
+    """Delete every UV map of ``obj``'s mesh (a mesh the bake must refuse)."""
+    while obj.data.uv_layers:
+        obj.data.uv_layers.remove(obj.data.uv_layers[0])
+    obj.data.update()

@@ -6,7 +6,7 @@ import bpy
 import numpy as np
 import pytest
 
-from helpers import add_material, select
+from helpers import add_material, remove_uv_maps, select
 
 
 @pytest.fixture
@@ -107,9 +107,7 @@ def test_run_all_checks_the_bake_before_any_work(lit_scene, lmdp_ext):
     """A mesh without UV map stops Run All before sampling (nothing stored, nothing written);
     with bake=False the same selection runs."""
     floor, box = lit_scene["Floor"], lit_scene["Box"]
-    while box.data.uv_layers:
-        box.data.uv_layers.remove(box.data.uv_layers[0])
-    box.data.update()
+    remove_uv_maps(box)
     select([floor, box])
     scene = bpy.context.scene
     before = data_snapshot()
@@ -179,9 +177,7 @@ def test_final_gather_needs_physical_mode(cornell):
 def test_mesh_without_uv_map_is_named(lit_scene):
     bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
     floor, box = lit_scene["Floor"], lit_scene["Box"]
-    while box.data.uv_layers:
-        box.data.uv_layers.remove(box.data.uv_layers[0])
-    box.data.update()
+    remove_uv_maps(box)
     select([floor, box])
     before = data_snapshot()
     with pytest.raises(RuntimeError, match=r"No UV map on Box: add one"):

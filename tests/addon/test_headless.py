@@ -9,6 +9,8 @@ import sys
 import bpy
 import pytest
 
+from helpers import remove_uv_maps
+
 
 def run_script(repo_root, tmp_path, *args):
     env = dict(os.environ)
@@ -97,8 +99,7 @@ def test_full_run_on_a_saved_file(repo_root, tmp_path, scene_file, lmdp_ext):
 
 def test_meshes_without_uv_map_skip_the_bake_unless_asked(repo_root, tmp_path, lit_scene):
     box = lit_scene["Box"]
-    while box.data.uv_layers:
-        box.data.uv_layers.remove(box.data.uv_layers[0])
+    remove_uv_maps(box)
     path = tmp_path / "no_uv.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)
     output = tmp_path / "out"
