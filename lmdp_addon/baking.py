@@ -35,7 +35,7 @@ from .progress import Progress
 from .raycast import RayCaster
 from .settings import BAKE_MODES
 from .texels import dilate, rasterize_texels, sample_footprint
-from .tracer import GatherField, IndirectTracer, StateGuide, TraceStats
+from .tracer import GatherField, IndirectTracer, StateGuide, TraceStats, neighbour_average
 
 #: Most paths traced by one work unit (memory: ~0.5 KiB per path in flight).
 PATHS_PER_UNIT = 1 << 16
@@ -43,6 +43,10 @@ PATHS_PER_UNIT = 1 << 16
 BAKE_THREADS = 2
 #: Most independent batches per texel (for the standard error).
 MAX_BATCHES = 8
+#: States whose optimal policies are averaged into each point's guide (``tracer.neighbour_average``):
+#: measured on the Cornell box floor (2048 points, 64 samples, 6 seeds), GUIDED's variance per
+#: sample relative to UNGUIDED's is 1.11 with 1, 0.99 with 16, 0.98 with 32 and 1.11 with 128.
+GUIDE_NEIGHBOURS = 16
 #: Suffix of the images the add-on writes.
 IMAGE_SUFFIX = "_lmdp_indirect"
 
@@ -291,11 +295,14 @@ def build_guide(scene, lmdp):
     if not same:
         lookup = {n: i for i, n in enumerate(lmdp.scene.object_names)}
         object_map = np.array([lookup.get(n, -1) for n in scene.object_names], dtype=np.int64)
+    normals = lmdp.states.normals
     guide = StateGuide(
         locator=locator,
         frames=lmdp.states.frames,
-        first=stratum_policy(lmdp.dynamics, lmdp.solution, "points"),
-        later=stratum_policy(lmdp.dynamics, lmdp.solution, "points+world"),
+        first=neighbour_average(stratum_policy(lmdp.dynamics, lmdp.solution, "points"), locator, normals,
+                                GUIDE_NEIGHBOURS),
+        later=neighbour_average(stratum_policy(lmdp.dynamics, lmdp.solution, "points+world"), locator,
+                                normals, GUIDE_NEIGHBOURS),
         strata_u=lmdp.states.strata_u,
         strata_v=lmdp.states.strata_v,
         same_scene=same,

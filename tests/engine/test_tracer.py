@@ -270,7 +270,7 @@ def test_light_sampling_gives_the_form_factor_near_and_far(height):
     hit = tri >= 0
     rays = np.zeros(n)
     cos = np.einsum("ij,ij->i", nrm, d)
-    rays[hit] = tracer._emission_hits(origin[hit], d[hit], tri[hit], dist[hit], cos[hit])[:, 0]
+    rays[hit] = tracer._emission_hits(origin, d, tri, dist, cos, np.flatnonzero(hit))[:, 0]
     near = tracer._near(origin[:1].astype(np.float64), np.array([0]))[0]
     assert near == (height < np.sqrt(2.0))
     F = scenes.point_to_parallel_square_form_factor(1.0, height, (-0.2, -0.1))
@@ -283,3 +283,35 @@ def test_light_sampling_gives_the_form_factor_near_and_far(height):
     M = np.stack([np.broadcast_to(e1, dirs.shape), np.broadcast_to(e2, dirs.shape), -dirs], axis=2)
     bary = np.linalg.solve(M, np.broadcast_to(-c[0, 0], dirs.shape)[..., None])[..., 0]
     assert np.all(bary[:, 0] >= -1e-7) and np.all(bary[:, 1] >= -1e-7) and np.all(bary[:, :2].sum(1) <= 1 + 1e-7)
+
+
+def test_neighbour_average_is_a_distribution_over_shared_strata_and_denoises_the_guide():
+    """u* from 4 rays per stratum, averaged over 16 same-normal neighbours, is closer to u* of the
+    same points from 256 rays per stratum than the raw rows are (mean L1 distance 0.26 vs 0.36);
+    rows stay distributions; only points with the same normal (hence the same strata) are mixed."""
+    from lmdp_addon.baking import GUIDE_NEIGHBOURS
+    from lmdp_addon.dynamics import StateLocator
+    from lmdp_addon.policy import stratum_policy
+    from lmdp_addon.tracer import neighbour_average
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    raw = pipeline.run_all(scene, Settings(point_count=1024, rays_per_stratum=4))
+    ref = pipeline.run_all(scene, Settings(point_count=1024, rays_per_stratum=256))
+    states = raw.states
+    locator = StateLocator(scene, states)
+    u_raw = stratum_policy(raw.dynamics, raw.solution, "points")
+    u_ref = stratum_policy(ref.dynamics, ref.solution, "points")
+    u_avg = neighbour_average(u_raw, locator, states.normals, GUIDE_NEIGHBOURS)
+    np.testing.assert_allclose(u_avg.sum(axis=1), 1.0, atol=1e-12)
+    assert np.all(u_avg >= 0)
+    err_raw = np.abs(u_raw - u_ref).sum(axis=1).mean()
+    err_avg = np.abs(u_avg - u_ref).sum(axis=1).mean()
+    assert err_avg < 0.8 * err_raw, (err_avg, err_raw)
+    # One neighbour is the identity; a point whose normal no other point shares keeps its row.
+    np.testing.assert_array_equal(neighbour_average(u_raw, locator, states.normals, 1), u_raw)
+    lonely = states.normals.copy()
+    lonely[0] = _unit_vector(lonely[0] + 0.01)
+    np.testing.assert_array_equal(neighbour_average(u_raw, locator, lonely, GUIDE_NEIGHBOURS)[0], u_raw[0])
+
+
+def _unit_vector(v):
+    return v / np.linalg.norm(v)
