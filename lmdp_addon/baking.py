@@ -290,7 +290,9 @@ def check_bake_inputs(scene, names, settings, lmdp=None, will_solve=False):
 def build_guide(scene, lmdp):
     """:class:`StateGuide` of the solved states for tracing ``scene`` (see ``tracer``)."""
     same = scene_fingerprint(scene) == scene_fingerprint(lmdp.scene)
-    locator = StateLocator(lmdp.scene, lmdp.states)
+    locator = getattr(lmdp.dynamics, "locator", None)  # the build's own (same states, same scene)
+    if locator is None:
+        locator = StateLocator(lmdp.scene, lmdp.states)
     object_map = None
     if not same:
         lookup = {n: i for i, n in enumerate(lmdp.scene.object_names)}

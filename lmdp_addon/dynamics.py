@@ -67,6 +67,7 @@ class PassiveDynamics:
     rays_per_stratum: int
     counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
+    locator: object = field(default=None, repr=False)  #: the StateLocator the hits were mapped with
 
     @property
     def n_emitters(self):
@@ -223,11 +224,11 @@ class StateLocator:
         if self.exact:
             return self.locate(positions, self.face_normals[tri], self.scene.triangle_object[tri],
                                workers=workers)
-        gu = self.gu[tri]
-        gv = self.gv[tri]
+        gu = np.take(self.gu, tri)
+        gv = np.take(self.gv, tri)
         i = np.minimum((u * gu).astype(np.int64), gu - 1)
         j = np.minimum((v * gv).astype(np.int64), gv - 1)
-        return self.grid_point[self.grid_offset[tri] + i * gv + j].astype(np.int64)
+        return np.take(self.grid_point, np.take(self.grid_offset, tri) + i * gv + j).astype(np.int64)
 
     def locate(self, positions, side_normals, objects, workers=-1):
         """Exact nearest point for each hit (tree query), -1 where the object has no states or
@@ -318,8 +319,8 @@ class HitClassifier:
         """Next-state column of every ray and a count per landing category."""
         T = self.scene.n_triangles
         t = np.where(tri >= 0, tri, T)
-        front = np.einsum("ij,ij->i", self.normals[t], directions) < 0.0
-        col = np.where(front, self.front_col[t], self.back_col[t])
+        front = np.einsum("ij,ij->i", np.take(self.normals, t, axis=0), directions) < 0.0
+        col = np.where(front, np.take(self.front_col, t), np.take(self.back_col, t))
         n_miss = int(np.count_nonzero(tri < 0))
         counts = {"world": n_miss if self.world_lit else 0,
                   "void_escape": 0 if self.world_lit else n_miss}
@@ -484,6 +485,7 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         rays_per_stratum=R,
         counts=counts,
         seconds={"setup": t_setup, "trace": t_trace, "bin": t_bin, "total": time.perf_counter() - t0},
+        locator=locator,
     )
 
 

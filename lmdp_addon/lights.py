@@ -31,7 +31,7 @@ class EmitterSample:
 
     @property
     def normal(self):
-        return self.sampler.normals[self.triangle_index]
+        return np.take(self.sampler.normals, self.triangle_index, axis=0)
 
     @property
     def triangle(self):
@@ -85,7 +85,9 @@ class EmitterSampler:
         if len(self.triangles) == 1:  # the common single-quad light: no gathers
             pos = self.v0[0] + b1[:, None] * self.e1[0] + b2[:, None] * self.e2[0]
         else:
-            pos = self.v0[k] + b1[:, None] * self.e1[k] + b2[:, None] * self.e2[k]
+            pos = np.take(self.v0, k, axis=0)
+            pos += b1[:, None] * np.take(self.e1, k, axis=0)
+            pos += b2[:, None] * np.take(self.e2, k, axis=0)
         return EmitterSample(position=pos, triangle_index=k, sampler=self,
                              pdf_area=1.0 / self.total_area)
 
