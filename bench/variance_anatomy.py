@@ -1,0 +1,72 @@
+"""Where the bake's variance comes from: per-sample relative variance of the indirect light at
+random points of a receiver, by path length, and with the scene's mesh light made one-sided.
+
+    .venv/bin/python bench/variance_anatomy.py [SCENE RECEIVER] [--points N] [--paths M]
+
+Prints, for UNGUIDED paths of 1, 2 and 8 bounces, the mean of the luminance of I = E_ind/π over
+the points and its variance per path relative to the squared mean (the number of samples per
+texel needed for a relative RMSE of 1 is this variance); then the same at 8 bounces with the
+emitters made one-sided (front side only, as an area light): the difference is what the light's
+back side, hanging 5 mm below the ceiling in the built-in scenes, contributes to the mean and to
+the variance. Engine only (no Blender); a few seconds per scene.
+"""
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from lmdp_addon import scenes  # noqa: E402
+from lmdp_addon.tracer import IndirectTracer  # noqa: E402
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def receiver_points(scene, name, n, rng):
+    """``n`` uniform points on the upward-facing triangles of object ``name`` and their normals."""
+    obj = scene.object_names.index(name)
+    normals, areas = scene.triangle_geometry()
+    tri = np.flatnonzero((scene.triangle_object == obj) & (normals[:, 2] > 0.5) & (areas > 0))
+    pick = tri[rng.choice(len(tri), n, p=areas[tri] / areas[tri].sum())]
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    c = scene.corners()[pick]
+    return c[:, 0] + u[:, None] * (c[:, 1] - c[:, 0]) + v[:, None] * (c[:, 2] - c[:, 0]), normals[pick]
+
+
+def relative_variance(scene, points, normals, paths, bounces, rng):
+    """(mean, variance per path / mean²) of the luminance of UNGUIDED estimates at ``points``."""
+    n = len(points)
+    tracer = IndirectTracer(scene, "UNGUIDED", max_bounces=bounces)
+    p, nn = np.repeat(points, paths, axis=0), np.repeat(normals, paths, axis=0)
+    values, _ = tracer.trace(p, nn, np.full(n * paths, -1), rng.random((n * paths, 2)), rng.random(n * paths), rng)
+    lum = (values.astype(np.float64) @ LUMINANCE).reshape(n, paths)
+    mean = lum.mean()
+    return mean, lum.var(axis=1).mean() / mean ** 2
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("cases", nargs="*", default=["CORNELL_BOX", "Floor", "NARROW_OPENING", "RoomAFloor"],
+                        help="pairs of SCENE RECEIVER")
+    parser.add_argument("--points", type=int, default=2048)
+    parser.add_argument("--paths", type=int, default=256)
+    args = parser.parse_args(argv)
+    for kind, name in zip(args.cases[::2], args.cases[1::2]):
+        scene = scenes.build_scene_arrays(kind)
+        rng = np.random.default_rng(0)
+        points, normals = receiver_points(scene, name, args.points, rng)
+        print(f"{kind} / {name}: {args.points} points x {args.paths} paths (UNGUIDED)")
+        for bounces in (1, 2, 8):
+            mean, rv = relative_variance(scene, points, normals, args.paths, bounces, rng)
+            print(f"  up to {bounces} bounce(s): mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}")
+        scene.triangle_emission_two_sided = np.zeros_like(scene.triangle_emission_two_sided)
+        mean, rv = relative_variance(scene, points, normals, args.paths, 8, rng)
+        print(f"  one-sided light, 8 bounces: mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}")
+
+
+if __name__ == "__main__":
+    main()
