@@ -172,3 +172,17 @@ def test_run_rejects_unknown_sections(venv_python, tmp_path):
     run = subprocess.run([venv_python, str(ROOT / "bench" / "run.py"), "--sections", "bake,nonsense",
                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert run.returncode == 2 and "nonsense" in run.stderr
+
+
+def test_variance_anatomy_samples_the_receiver_and_reports_each_case(capsys):
+    from bench import variance_anatomy
+    from lmdp_addon import scenes
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    rng = np.random.default_rng(0)
+    points, normals = variance_anatomy.receiver_points(scene, "Floor", 500, rng)
+    assert np.allclose(points[:, 2], 0.0, atol=1e-9) and np.all(normals[:, 2] > 0.5)
+    mean, rv = variance_anatomy.relative_variance(scene, points[:50], normals[:50], 16, 8, rng)
+    assert mean > 0 and np.isfinite(rv) and rv > 0
+    variance_anatomy.main(["CORNELL_BOX", "Floor", "--points", "32", "--paths", "8"])
+    out = capsys.readouterr().out
+    assert out.count("bounce(s)") == 3 and "one-sided light" in out
