@@ -297,14 +297,16 @@ def build_guide(scene, lmdp):
     if not same:
         lookup = {n: i for i, n in enumerate(lmdp.scene.object_names)}
         object_map = np.array([lookup.get(n, -1) for n in scene.object_names], dtype=np.int64)
-    normals = lmdp.states.normals
+    # Both policies side by side: one neighbour search averages them (the mean is per column).
+    S = lmdp.states.n_strata
+    both = neighbour_average(np.hstack([stratum_policy(lmdp.dynamics, lmdp.solution, "points"),
+                                        stratum_policy(lmdp.dynamics, lmdp.solution, "points+world")]),
+                             locator, lmdp.states.normals, GUIDE_NEIGHBOURS)
     guide = StateGuide(
         locator=locator,
         frames=lmdp.states.frames,
-        first=neighbour_average(stratum_policy(lmdp.dynamics, lmdp.solution, "points"), locator, normals,
-                                GUIDE_NEIGHBOURS),
-        later=neighbour_average(stratum_policy(lmdp.dynamics, lmdp.solution, "points+world"), locator,
-                                normals, GUIDE_NEIGHBOURS),
+        first=both[:, :S],
+        later=both[:, S:],
         strata_u=lmdp.states.strata_u,
         strata_v=lmdp.states.strata_v,
         same_scene=same,

@@ -200,8 +200,9 @@ class StateGuide:
 
 
 def neighbour_average(rows, locator, normals, neighbours):
-    """Mean of the per-stratum distributions ``rows (m, S)`` over each point's ``neighbours``
-    nearest points (``locator``'s 6-D distance, same object) whose normal equals its own.
+    """Mean of the per-stratum distributions ``rows (m, S)`` (or several side by side, (m, n S):
+    the mean is taken per column) over each point's ``neighbours`` nearest points (``locator``'s
+    6-D distance, same object) whose normal equals its own.
 
     u*(k|x) comes from ``R`` rays per stratum (thesis eq. 3.1), so a point's row is a Monte Carlo
     estimate whose noise easily exceeds the differences between neighbouring points. Points with
@@ -609,18 +610,17 @@ class IndirectTracer:
             tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
             stats.rays += len(idx)
             hit = tri >= 0
+            h = np.flatnonzero(hit)
             if bounce >= 2:
                 # Light found by the direction sampled at y_{bounce-1}: world and emitters (MIS).
                 bw = beta * w[:, None]
-                if self.world_lit and not np.all(hit):
+                if self.world_lit and len(h) < len(idx):
                     miss = np.flatnonzero(~hit)
                     L[idx[miss]] += _rows(bw, miss) * self.world
-                h = np.flatnonzero(hit)
                 if len(h):
                     L[idx[h]] += _rows(bw, h) * self._emission_hits(origin, d, tri, dist, cos_prev, h)
             if bounce > self.max_bounces:
                 break
-            h = np.flatnonzero(hit)
             idx, origin, d, w, beta, tri, dist, bu, bv = _compact(h, idx, origin, d, w, beta, tri, dist, bu, bv)
             pos = origin + d * dist[:, None]
             ng = _rows(self.face_normals, tri)
