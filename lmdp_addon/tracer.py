@@ -171,10 +171,11 @@ class StateGuide:
         prob = self.first if first else self.later
         cdf = self.cdf_first if first else self.cdf_later
         S = self.n_strata
-        # Row s of the CDF shifted by s is one increasing array over all states: one binary
-        # search finds the stratum (the count of row entries <= u).
-        offset = self.offset_cdf_first if first else self.offset_cdf_later
-        k = np.clip(np.searchsorted(offset, states + u[:, 0], side="right") - states * S, 0, S - 1)
+        if S <= 32:  # the stratum is the count of row entries <= u: one row gather, S compares
+            k = np.minimum(np.count_nonzero(np.take(cdf, states, axis=0) <= u[:, 0:1], axis=1), S - 1)
+        else:  # row s of the CDF shifted by s is one increasing array: one binary search
+            offset = self.offset_cdf_first if first else self.offset_cdf_later
+            k = np.clip(np.searchsorted(offset, states + u[:, 0], side="right") - states * S, 0, S - 1)
         flat = states * S + k
         lo = np.where(k > 0, np.take(cdf, flat - 1), 0.0)
         p = np.take(prob, flat)
@@ -184,8 +185,8 @@ class StateGuide:
         x, y = _concentric32(su, sv)
         r2 = x * x + y * y
         lift = np.sqrt(np.maximum(2.0 - r2, 0.0))
-        local = np.stack([x * lift, y * lift, 1.0 - r2], axis=1)  # equal-area lift (hemisphere.py)
-        d = np.einsum("ki,kij->kj", local, _rows(self.frames32, states))
+        # Equal-area lift of the disk to the hemisphere (hemisphere.py), then into s's frame.
+        d = _rotate_out(_rows(self.frames32, states), x * lift, y * lift, 1.0 - r2)
         if return_density:
             return d, p * (S / (2.0 * np.pi))
         return d
@@ -193,7 +194,7 @@ class StateGuide:
     def density(self, states, directions, first):
         """g_s(ω) (k,) for world directions ``(k, 3)``: u*(k|s) S / 2π, 0 below s's horizon."""
         prob = self.first if first else self.later
-        local = np.einsum("kij,kj->ki", _rows(self.frames32, states), np.asarray(directions, dtype=np.float32))
+        local = _rotate_in(_rows(self.frames32, states), np.asarray(directions, dtype=np.float32))
         k = stratum_of_local(local, self.strata_u, self.strata_v)
         g = np.take(prob, states * self.n_strata + np.maximum(k, 0)) * (self.n_strata / (2.0 * np.pi))
         return np.where(k >= 0, g, 0.0)
@@ -407,9 +408,16 @@ class IndirectTracer:
             self.emitter_edge1_64 = c[:, 1] - c[:, 0]
             self.emitter_edge2_64 = c[:, 2] - c[:, 0]
             self.emitter_normal64 = np.ascontiguousarray(normals[em], dtype=np.float64)
+            self.emitter_normal32 = self.emitter_normal64.astype(np.float32)
+            self.emitter_corner32 = self.emitter_corner64.astype(np.float32)
+            self.emitter_edge1_32 = self.emitter_edge1_64.astype(np.float32)
+            self.emitter_edge2_32 = self.emitter_edge2_64.astype(np.float32)
+            self.emitter_plane32 = np.einsum("ij,ij->i", self.emitter_normal32, self.emitter_corner32)
+            self.emitter_cdf32 = self.emitter_cdf.astype(np.float32)
             self.emitter_longest2 = np.max(np.stack([np.sum((c[:, 1] - c[:, 0]) ** 2, axis=1),
                                                      np.sum((c[:, 2] - c[:, 1]) ** 2, axis=1),
-                                                     np.sum((c[:, 0] - c[:, 2]) ** 2, axis=1)]), axis=0)
+                                                     np.sum((c[:, 0] - c[:, 2]) ** 2, axis=1)]),
+                                           axis=0).astype(np.float32)
         self.triangle_emitter_index = np.full(T, -1, dtype=np.int64)
         self.triangle_emitter_index[em] = np.arange(len(em))
         # Per scene triangle, for rays that hit emitters: light-sampling p_A (0: not an emitter).
@@ -440,11 +448,7 @@ class IndirectTracer:
             x = r * np.cos(phi)
             y = r * np.sin(phi)
             z = np.sqrt(np.maximum(1.0 - u[:, 0], 0.0))
-        t, b2 = _tangents(normals)
-        out = normals * z[:, None]
-        out += t * x[:, None]
-        out += b2 * y[:, None]
-        return out.astype(np.float32, copy=False)
+        return _local_to_world(normals, x, y, z)
 
     def _sample(self, normals, states, u, u_mix, first):
         """Directions ``d``, weights ``w = cos θ / (π p(d))`` and ``cos θ`` at vertices."""
@@ -477,107 +481,117 @@ class IndirectTracer:
     def _direct(self, points, normals, rng, stats):
         """(k, 3) light-sampling half of the MIS estimate of D_e(y) = (1/π) ∫ L_e cos θ dω.
 
-        One point on the emitters (triangle ∝ area x max radiance, uniform on it) with the
-        weight ``q / (p_L + q)``: ``p_L = p_A r² / cos θ_l`` is the light-sampling density per
-        steradian and ``q = cos θ_y / π`` the cosine density. The sampled-ray half
-        (:meth:`_emission_hits`) uses ``q / (p_L + q)`` with the same q, so the two weights sum to
-        one for every direction and the combination is unbiased whatever density drew the ray
-        (in GUIDED mode q is the cosine part of the mixture only: a cheaper, still exact,
-        partition of unity; Veach's balance heuristic when sampling is purely cosine).
+        One point on the emitters (triangle ∝ area x max radiance) with the weight
+        ``q / (p_L + q)``: ``p_L`` is the light-sampling density per steradian and
+        ``q = cos θ_y / π`` the cosine density. Far from the triangle the point is uniform on it
+        (``p_L = p_A r² / cos θ_l``); close to it, uniform in the solid angle Ω it subtends
+        (Arvo 1995, ``p_L = P(triangle) / Ω``), as Cycles chooses (:meth:`_near`). The
+        sampled-ray half (:meth:`_emission_hits`) uses ``q / (q + p_L)`` with the same q and
+        strategy, so the two weights sum to one for every direction and the combination is
+        unbiased whatever density drew the ray (in GUIDED mode q is the cosine part of the mixture
+        only: a cheaper, still exact, partition of unity; Veach's balance heuristic when sampling
+        is purely cosine).
         """
         k = len(points)
         out = np.zeros((k, 3), np.float32)
         if self.n_emitter_triangles == 0 or k == 0:
             return out
-        r = rng.random((k, 3))
-        e = np.minimum(np.searchsorted(self.emitter_cdf, r[:, 0], side="right"), self.n_emitter_triangles - 1)
+        r = rng.random((k, 3), dtype=np.float32)
+        if self.n_emitter_triangles == 1:
+            e = np.zeros(k, dtype=np.int64)
+        else:
+            e = np.minimum(np.searchsorted(self.emitter_cdf32, r[:, 0], side="right"),
+                           self.n_emitter_triangles - 1)
         # Direction and distance from the offset origin itself: from the surface point, a shadow
         # ray at a grazing angle would meet the emitter's plane before ``dist`` (close emitters).
         origin = points + self.eps * normals
-        o64 = origin.astype(np.float64)
-        n_l = _rows(self.emitter_normal64, e)
-        v0 = _rows(self.emitter_corner64, e)
-        near = self._near(o64, e, v0, n_l)
-        dl = np.empty((k, 3))
-        dist = np.zeros(k)
-        p_light = np.zeros(k)
+        n_l = _rows(self.emitter_normal32, e)
+        near = self._near(origin, e, n_l)
         far = np.flatnonzero(~near)
-        if len(far):  # uniform on the triangle (area measure)
-            sq = np.sqrt(r[far, 1])
-            ef = e[far]
-            to = _rows(v0, far) - _rows(o64, far)
-            to += (sq * (1.0 - r[far, 2]))[:, None] * _rows(self.emitter_edge1_64, ef)
-            to += (sq * r[far, 2])[:, None] * _rows(self.emitter_edge2_64, ef)
-            d_far = np.sqrt(_dot(to, to))
-            dist[far] = d_far
-            dl[far] = to / np.maximum(d_far, 1e-300)[:, None]
         close = np.flatnonzero(near)
-        if len(close):  # uniform in the solid angle the triangle subtends (Arvo 1995)
-            ec = e[close]
-            oc = _rows(o64, close)
-            d_close, omega = spherical_triangle_sample(_rows(self.emitter_corners64, ec) - oc[:, None, :],
-                                                       r[close, 1], r[close, 2])
-            dl[close] = d_close
-            nc = _rows(n_l, close)
-            denom = _dot(d_close, nc)
-            t = _dot(_rows(v0, close) - oc, nc) / np.where(denom != 0, denom, 1e-300)
-            dist[close] = np.where((denom != 0) & (t > 0) & (omega > 0), t, 0.0)
-            p_light[close] = np.where(omega > 0, self.emitter_prob[ec] / np.maximum(omega, 1e-300), 0.0)
-        cos_y = _dot(normals.astype(np.float64), dl)
-        cos_l = -_dot(n_l, dl)
-        cos_l = np.where(self.emitter_two_sided[e], np.abs(cos_l), cos_l)
+        # Far: uniform on the triangle (area measure), float32.
+        ef = np.take(e, far)
+        sq = np.sqrt(np.take(r[:, 1], far))
+        b = sq * np.take(r[:, 2], far)
+        to = _rows(self.emitter_corner32, ef) - _rows(origin, far)
+        to += (sq - b)[:, None] * _rows(self.emitter_edge1_32, ef)
+        to += b[:, None] * _rows(self.emitter_edge2_32, ef)
+        dist_far = np.sqrt(_dot(to, to))
+        dl_far = to / np.where(dist_far > 0, dist_far, 1.0)[:, None]
+        # Close: uniform in the solid angle (float64: the spherical construction loses precision).
+        ec = np.take(e, close)
+        oc = _rows(origin, close).astype(np.float64)
+        dl_close, omega = spherical_triangle_sample(_rows(self.emitter_corners64, ec) - oc[:, None, :],
+                                                    np.take(r[:, 1], close), np.take(r[:, 2], close))
+        nc = _rows(self.emitter_normal64, ec)
+        denom = _dot(dl_close, nc)
+        t = _dot(_rows(self.emitter_corner64, ec) - oc, nc) / np.where(denom != 0, denom, 1e-300)
+        dist_close = np.where((denom != 0) & (t > 0) & (omega > 0), t, 0.0).astype(np.float32)
+        # Both halves side by side, in the order ``order`` of the vertices.
+        order = np.concatenate([far, close])
+        dl = np.concatenate([dl_far, dl_close.astype(np.float32)])
+        dist = np.concatenate([dist_far, dist_close])
+        e = np.take(e, order)
+        cos_y = _dot(_rows(normals, order), dl)
+        cos_l = -_dot(_rows(n_l, order), dl)
+        cos_l = np.where(np.take(self.emitter_two_sided, e), np.abs(cos_l), cos_l)
         ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (dist > 0))
         if len(ok) == 0:
             return out
-        tmax = np.maximum(dist[ok] - self.eps, 0.0).astype(np.float32)
-        blocked = self.caster.occluded(_rows(origin, ok), _rows(dl, ok).astype(np.float32), tmax)
+        tmax = np.maximum(np.take(dist, ok) - self.eps, 0.0)
+        blocked = self.caster.occluded(_rows(origin, np.take(order, ok)), _rows(dl, ok), tmax)
         stats.shadow_rays += len(ok)
         vis = ok[~blocked]
         if len(vis) == 0:
             return out
-        far_vis = vis[~near[vis]]
-        p_light[far_vis] = self.emitter_pdf_area[e[far_vis]] * dist[far_vis] ** 2 / cos_l[far_vis]
-        q = cos_y[vis] * INV_PI
-        out[vis] = _rows(self.emitter_radiance, e[vis]) * (q / (p_light[vis] + q))[:, None]
+        ev = np.take(e, vis)
+        dv = np.take(dist, vis)
+        p_light = np.take(self.emitter_pdf_area, ev) * dv * dv / np.take(cos_l, vis)
+        solid = np.flatnonzero(vis >= len(far))
+        if len(solid):
+            p_light[solid] = (np.take(self.emitter_prob, np.take(ev, solid))
+                              / np.maximum(np.take(omega, np.take(vis, solid) - len(far)), 1e-300))
+        q = np.take(cos_y, vis) * np.float32(INV_PI)
+        out[np.take(order, vis)] = _rows(self.emitter_radiance, ev) * (q / (p_light + q))[:, None]
         return out
 
-    def _near(self, origins, e, corner=None, normal=None):
-        """Light-sampling strategy per (point, emitter triangle), as Cycles chooses it: solid-angle
-        sampling when the triangle's longest edge exceeds the point's distance to its plane
-        (``corner``, ``normal``: the triangles' first corners and normals, if already gathered)."""
-        corner = _rows(self.emitter_corner64, e) if corner is None else corner
-        normal = _rows(self.emitter_normal64, e) if normal is None else normal
-        d_plane = _dot(origins - corner, normal)
-        return self.emitter_longest2[e] > d_plane * d_plane
+    def _near(self, origins, e, normal=None):
+        """Light-sampling strategy per (ray origin ``origins (k, 3)`` float32, emitter triangle
+        ``e``), as Cycles chooses it: solid-angle sampling when the triangle's longest edge
+        exceeds the origin's distance to its plane (``normal``: the triangles' normals, if already
+        gathered). NEE and the MIS weight of emitter hits call this with the same float32 origins,
+        so they always agree on the strategy."""
+        normal = _rows(self.emitter_normal32, e) if normal is None else normal
+        d_plane = _dot(origins, normal) - np.take(self.emitter_plane32, e)
+        return np.take(self.emitter_longest2, e) > d_plane * d_plane
 
     def _emission_hits(self, origins, d, tri, dist, cos_from, rays):
-        """(k, 3) BSDF-sampling half of the MIS estimate for the rays ``rays (k,)`` of a wavefront
-        (from a vertex y_k, k >= 1) that hit geometry: ``L_e · q / (q + p_L)`` where they hit an
-        emitter, to be multiplied by ``β w`` (``cos_from``: cos θ of the ray at the vertex it
-        left; q = cos θ / π, see ``_direct``)."""
-        out = np.zeros((len(rays), 3), np.float32)
+        """BSDF-sampling half of the MIS estimate for the rays ``rays (k,)`` of a wavefront (from
+        a vertex y_k, k >= 1) that hit geometry: ``(lit, values)``, the rays among them that hit
+        an emitter's emitting side and their ``L_e · q / (q + p_L)`` (k_lit, 3), to be multiplied
+        by ``β w`` (``cos_from``: cos θ of the ray at the vertex it left; q = cos θ / π, see
+        ``_direct``)."""
+        none = np.zeros(0, dtype=np.int64), np.zeros((0, 3), np.float32)
         if self.n_emitter_triangles == 0:
-            return out
-        sel = np.flatnonzero(self.triangle_emitter_pdf_area[tri[rays]] > 0)
-        if len(sel) == 0:
-            return out
-        ray = rays[sel]
+            return none
+        ray = rays[self.triangle_emitter_pdf_area[tri[rays]] > 0]
+        if len(ray) == 0:
+            return none
         t = tri[ray]
         cos_l = -_dot(_rows(self.face_normals, t), _rows(d, ray))
         cos_l = np.where(self.triangle_two_sided[t], np.abs(cos_l), cos_l)
         lit = np.flatnonzero(cos_l > 0)
-        sel, ray, t, cos_l = sel[lit], ray[lit], t[lit], cos_l[lit]
+        ray, t, cos_l = ray[lit], t[lit], cos_l[lit]
         p_light = self.triangle_emitter_pdf_area[t] * dist[ray] ** 2 / cos_l
         e = self.triangle_emitter_index[t]
-        o64 = _rows(origins, ray).astype(np.float64)
-        near = np.flatnonzero(self._near(o64, e))
+        o32 = _rows(origins, ray)
+        near = np.flatnonzero(self._near(o32, e))
         if len(near):
             omega = spherical_triangle_solid_angle(_rows(self.emitter_corners64, e[near])
-                                                   - _rows(o64, near)[:, None, :])
+                                                   - _rows(o32, near).astype(np.float64)[:, None, :])
             p_light[near] = self.emitter_prob[e[near]] / np.maximum(omega, 1e-300)
         q = cos_from[ray] * INV_PI
-        out[sel] = _rows(self.scene_emission, t) * (q / (q + p_light))[:, None]
-        return out
+        return ray, _rows(self.scene_emission, t) * (q / (q + p_light))[:, None]
 
     # -- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, objects=None):
@@ -618,7 +632,8 @@ class IndirectTracer:
                     miss = np.flatnonzero(~hit)
                     L[idx[miss]] += _rows(bw, miss) * self.world
                 if len(h):
-                    L[idx[h]] += _rows(bw, h) * self._emission_hits(origin, d, tri, dist, cos_prev, h)
+                    lit, value = self._emission_hits(origin, d, tri, dist, cos_prev, h)
+                    L[idx[lit]] += _rows(bw, lit) * value
             if bounce > self.max_bounces:
                 break
             idx, origin, d, w, beta, tri, dist, bu, bv = _compact(h, idx, origin, d, w, beta, tri, dist, bu, bv)
@@ -694,35 +709,41 @@ def _rows(a, index):
     return np.take(a, index, axis=0)
 
 
-def _unit(v):
-    n = np.sqrt(_dot(v, v))
-    return v / np.where(n > 0, n, 1.0)[:, None]
-
-
-def _cross(a, b):
-    """Row-wise cross product of (k, 3) arrays (``np.cross`` without its axis juggling)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
-
-
 def _channel_max(rgb):
     """Largest of the three channels of (k, 3) values (faster than ``max(axis=1)``)."""
     return np.maximum(np.maximum(rgb[:, 0], rgb[:, 1]), rgb[:, 2])
 
 
-def _solid_angle_of_units(a, b, c):
-    num = np.abs(_dot(a, _cross(b, c)))
-    den = 1.0 + _dot(a, b) + _dot(b, c) + _dot(c, a)
-    return 2.0 * np.arctan2(num, den)
+def _unit3(x, y, z):
+    """Unit vectors given as three (k,) component arrays (zero vectors stay zero). The
+    spherical-triangle routines work on components: contiguous (k,) arrays are several times
+    faster in numpy than the strided columns of (k, 3) arrays."""
+    n = np.sqrt(x * x + y * y + z * z)
+    inv = 1.0 / np.where(n > 0, n, 1.0)
+    return x * inv, y * inv, z * inv
+
+
+def _cross3(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _corner_units(corners):
+    return tuple(_unit3(corners[:, i, 0], corners[:, i, 1], corners[:, i, 2]) for i in range(3))
+
+
+def _solid_angle_of_units(A, B, C):
+    """Van Oosterom & Strackee (1983): tan(Ω/2) = |A·(B x C)| / (1 + A·B + B·C + C·A)."""
+    return 2.0 * np.arctan2(np.abs(_dot3(A, _cross3(B, C))), 1.0 + _dot3(A, B) + _dot3(B, C) + _dot3(C, A))
 
 
 def spherical_triangle_solid_angle(corners):
     """Solid angle (k,) of triangles ``corners (k, 3, 3)`` given relative to the viewpoint
     (Van Oosterom & Strackee 1983)."""
-    return _solid_angle_of_units(_unit(corners[:, 0]), _unit(corners[:, 1]), _unit(corners[:, 2]))
+    return _solid_angle_of_units(*_corner_units(corners))
 
 
 def spherical_triangle_sample(corners, u1, u2):
@@ -731,34 +752,62 @@ def spherical_triangle_sample(corners, u1, u2):
 
     The pdf of a returned direction is 1 / solid angle. Degenerate triangles get solid angle 0.
     """
-    A, B, C = _unit(corners[:, 0]), _unit(corners[:, 1]), _unit(corners[:, 2])
-    n_ab, n_ac, n_bc = _unit(_cross(A, B)), _unit(_cross(A, C)), _unit(_cross(B, C))
-    alpha = np.arccos(np.clip(_dot(n_ab, n_ac), -1.0, 1.0))
-    beta = np.arccos(np.clip(-_dot(n_ab, n_bc), -1.0, 1.0))
-    gamma = np.arccos(np.clip(_dot(n_ac, n_bc), -1.0, 1.0))
-    area = alpha + beta + gamma - np.pi
+    A, B, C = _corner_units(corners)
+    n_ab, n_ac = _unit3(*_cross3(A, B)), _unit3(*_cross3(A, C))
+    cos_a = np.clip(_dot3(n_ab, n_ac), -1.0, 1.0)   # the triangle's angle α at A
+    sin_a = np.sqrt(1.0 - cos_a * cos_a)
+    alpha = np.arccos(cos_a)
+    # Its area (solid angle) is the spherical excess α + β + γ - π; Van Oosterom's formula gives
+    # the same number without the other two angles, and is the one the MIS weights use.
     omega = _solid_angle_of_units(A, B, C)
-    a_hat = u1 * area
+    a_hat = u1 * omega                                # the sub-triangle's area
     s, t = np.sin(a_hat - alpha), np.cos(a_hat - alpha)
-    sin_a, cos_a = np.sin(alpha), np.cos(alpha)
     u = t - cos_a
-    v = s + sin_a * _dot(A, B)
+    ab, ca = _dot3(A, B), _dot3(C, A)
+    v = s + sin_a * ab
     den = (v * s + u * t) * sin_a
     q = np.clip(((v * t - u * s) * cos_a - v) / np.where(den != 0, den, 1e-300), -1.0, 1.0)
-    c_hat = q[:, None] * A + np.sqrt(np.maximum(1.0 - q * q, 0.0))[:, None] * _unit(C - _dot(C, A)[:, None] * A)
-    z = 1.0 - u2 * (1.0 - _dot(c_hat, B))
-    d = z[:, None] * B + np.sqrt(np.maximum(1.0 - z * z, 0.0))[:, None] * _unit(c_hat - _dot(c_hat, B)[:, None] * B)
-    ok = (area > 1e-12) & np.isfinite(d).all(axis=1)
-    return np.where(ok[:, None], d, B), np.where(ok, omega, 0.0)
+    perp = _unit3(*(C[i] - ca * A[i] for i in range(3)))
+    sq = np.sqrt(np.maximum(1.0 - q * q, 0.0))
+    c_hat = tuple(q * A[i] + sq * perp[i] for i in range(3))   # the new third corner
+    cb = _dot3(c_hat, B)
+    z = 1.0 - u2 * (1.0 - cb)                                   # uniform along the arc B..c_hat
+    perp = _unit3(*(c_hat[i] - cb * B[i] for i in range(3)))
+    sz = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    d = np.stack([z * B[i] + sz * perp[i] for i in range(3)], axis=1)
+    ok = (omega > 1e-12) & np.isfinite(d).all(axis=1)
+    return np.where(ok[:, None], d, np.stack(B, axis=1)), np.where(ok, omega, 0.0)
 
 
-def _tangents(n):
-    """Tangent and bitangent (k, 3) of unit normals, Duff et al.'s branchless frame."""
+def _rotate_out(frames, x, y, z):
+    """World directions (k, 3) of local coordinates ``x, y, z (k,)`` in ``frames (k, 3, 3)``
+    (rows t, b, n): ``x t + y b + z n``, per component."""
+    out = np.empty((len(frames), 3), np.float32)
+    for j in range(3):
+        out[:, j] = x * frames[:, 0, j] + y * frames[:, 1, j] + z * frames[:, 2, j]
+    return out
+
+
+def _rotate_in(frames, d):
+    """Local coordinates (k, 3) of world directions ``d (k, 3)`` in ``frames (k, 3, 3)``."""
+    out = np.empty((len(frames), 3), np.float32)
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+    for i in range(3):
+        out[:, i] = frames[:, i, 0] * dx + frames[:, i, 1] * dy + frames[:, i, 2] * dz
+    return out
+
+
+def _local_to_world(n, x, y, z):
+    """World directions (k, 3) float32 of local coordinates ``x, y, z (k,)`` in the frames
+    (t, b, n) of unit normals ``n (k, 3)``: Duff et al.'s branchless tangent frame, formed per
+    component (contiguous (k,) arrays; faster than (k, 3) products in numpy)."""
     n = np.asarray(n)
     nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
     sign = np.where(nz >= 0.0, 1.0, -1.0).astype(n.dtype)
     a = -1.0 / (sign + nz)
     b = nx * ny * a
-    t = np.stack([1.0 + sign * nx * nx * a, sign * b, -sign * nx], axis=1)
-    bt = np.stack([b, sign + ny * ny * a, -ny], axis=1)
-    return t, bt
+    out = np.empty((len(n), 3), np.float32)
+    out[:, 0] = (1.0 + sign * nx * nx * a) * x + b * y + nx * z
+    out[:, 1] = sign * b * x + (sign + ny * ny * a) * y + ny * z
+    out[:, 2] = -sign * nx * x - ny * y + nz * z
+    return out

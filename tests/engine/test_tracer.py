@@ -270,7 +270,8 @@ def test_light_sampling_gives_the_form_factor_near_and_far(height):
     hit = tri >= 0
     rays = np.zeros(n)
     cos = np.einsum("ij,ij->i", nrm, d)
-    rays[hit] = tracer._emission_hits(origin, d, tri, dist, cos, np.flatnonzero(hit))[:, 0]
+    lit, value = tracer._emission_hits(origin, d, tri, dist, cos, np.flatnonzero(hit))
+    rays[lit] = value[:, 0]
     near = tracer._near(origin[:1].astype(np.float64), np.array([0]))[0]
     assert near == (height < np.sqrt(2.0))
     F = scenes.point_to_parallel_square_form_factor(1.0, height, (-0.2, -0.1))
