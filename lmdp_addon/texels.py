@@ -238,12 +238,20 @@ def sample_footprint(texels, n, rng, include_center=True):
     """
     m = len(texels)
     d = texels.pixel_barycentric_derivatives  # (m, 2, 2): d(b0, b1)/d(x, y)
-    b0 = np.broadcast_to(texels.barycentric[:, None, 0], (m, n)).copy()
-    b1 = np.broadcast_to(texels.barycentric[:, None, 1], (m, n)).copy()
-    pending = np.ones((m, n), dtype=bool)
+    c0 = texels.barycentric[:, None, 0]
+    c1 = texels.barycentric[:, None, 1]
+    # First draw for every sample at once (broadcast over the texel's n samples).
+    off = rng.random((m, n, 2)) - 0.5
+    b0 = c0 + d[:, None, 0, 0] * off[..., 0] + d[:, None, 0, 1] * off[..., 1]
+    b1 = c1 + d[:, None, 1, 0] * off[..., 0] + d[:, None, 1, 1] * off[..., 1]
+    pending = ~((b0 > 0.0) & (b1 > 0.0) & (b0 + b1 < 1.0))
+    if include_center and n > 0:
+        pending[:, 0] = True           # the centre sample: set below
+    b0 = np.where(pending, c0, b0)     # texel point until a redraw lands in the triangle
+    b1 = np.where(pending, c1, b1)
     if include_center and n > 0:
         pending[:, 0] = False
-    for _ in range(JITTER_ATTEMPTS):
+    for _ in range(JITTER_ATTEMPTS - 1):  # redraws of the few that fell outside
         idx = np.nonzero(pending)
         if len(idx[0]) == 0:
             break
@@ -257,7 +265,9 @@ def sample_footprint(texels, n, rng, include_center=True):
         pending[idx[0][ok], idx[1][ok]] = False
     bary = np.stack([b0, b1, 1.0 - b0 - b1], axis=-1)
     corners = texels.triangle_corners[texels.triangle]  # (m, 3, 3)
-    position = np.einsum("mnk,mkj->mnj", bary, corners)
+    # b0 c0 + b1 c1 + b2 c2 = c2 + b0 (c0 - c2) + b1 (c1 - c2), broadcast over the samples.
+    position = (corners[:, None, 2] + b0[..., None] * (corners[:, None, 0] - corners[:, None, 2])
+                + b1[..., None] * (corners[:, None, 1] - corners[:, None, 2]))
     normals = np.asarray(texels.triangle_normals, dtype=np.float64)
     if normals.ndim == 3:
         normal = np.einsum("mnk,mkj->mnj", bary, normals[texels.triangle])

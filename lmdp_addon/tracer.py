@@ -414,6 +414,12 @@ class IndirectTracer:
             self.emitter_edge2_32 = self.emitter_edge2_64.astype(np.float32)
             self.emitter_plane32 = np.einsum("ij,ij->i", self.emitter_normal32, self.emitter_corner32)
             self.emitter_cdf32 = self.emitter_cdf.astype(np.float32)
+            # The same tables per component (x, y, z) for next-event estimation.
+            self.emitter_normal32_xyz = tuple(np.ascontiguousarray(self.emitter_normal32[:, i]) for i in range(3))
+            self.emitter_corner32_xyz = tuple(np.ascontiguousarray(self.emitter_corner32[:, i]) for i in range(3))
+            self.emitter_edge1_32_xyz = tuple(np.ascontiguousarray(self.emitter_edge1_32[:, i]) for i in range(3))
+            self.emitter_edge2_32_xyz = tuple(np.ascontiguousarray(self.emitter_edge2_32[:, i]) for i in range(3))
+            self.any_two_sided = bool(np.any(self.emitter_two_sided))
             self.emitter_longest2 = np.max(np.stack([np.sum((c[:, 1] - c[:, 0]) ** 2, axis=1),
                                                      np.sum((c[:, 2] - c[:, 1]) ** 2, axis=1),
                                                      np.sum((c[:, 0] - c[:, 2]) ** 2, axis=1)]),
@@ -504,20 +510,24 @@ class IndirectTracer:
                            self.n_emitter_triangles - 1)
         # Direction and distance from the offset origin itself: from the surface point, a shadow
         # ray at a grazing angle would meet the emitter's plane before ``dist`` (close emitters).
+        # Per component below: contiguous (k,) arrays are much faster in numpy than (k, 3) rows.
         origin = points + self.eps * normals
-        n_l = _rows(self.emitter_normal32, e)
-        near = self._near(origin, e, n_l)
+        o = (origin[:, 0], origin[:, 1], origin[:, 2])
+        n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
+        d_plane = _dot3(o, n_l) - np.take(self.emitter_plane32, e)
+        near = np.take(self.emitter_longest2, e) > d_plane * d_plane   # = self._near(origin, e)
         far = np.flatnonzero(~near)
         close = np.flatnonzero(near)
         # Far: uniform on the triangle (area measure), float32.
         ef = np.take(e, far)
         sq = np.sqrt(np.take(r[:, 1], far))
         b = sq * np.take(r[:, 2], far)
-        to = _rows(self.emitter_corner32, ef) - _rows(origin, far)
-        to += (sq - b)[:, None] * _rows(self.emitter_edge1_32, ef)
-        to += b[:, None] * _rows(self.emitter_edge2_32, ef)
-        dist_far = np.sqrt(_dot(to, to))
-        dl_far = to / np.where(dist_far > 0, dist_far, 1.0)[:, None]
+        a = sq - b
+        to = [np.take(c0, ef) - np.take(oc, far) + a * np.take(c1, ef) + b * np.take(c2, ef)
+              for c0, c1, c2, oc in zip(self.emitter_corner32_xyz, self.emitter_edge1_32_xyz,
+                                        self.emitter_edge2_32_xyz, o)]
+        dist_far = np.sqrt(to[0] * to[0] + to[1] * to[1] + to[2] * to[2])
+        inv = 1.0 / np.where(dist_far > 0, dist_far, 1.0)
         # Close: uniform in the solid angle (float64: the spherical construction loses precision).
         ec = np.take(e, close)
         oc = _rows(origin, close).astype(np.float64)
@@ -529,12 +539,17 @@ class IndirectTracer:
         dist_close = np.where((denom != 0) & (t > 0) & (omega > 0), t, 0.0).astype(np.float32)
         # Both halves side by side, in the order ``order`` of the vertices.
         order = np.concatenate([far, close])
-        dl = np.concatenate([dl_far, dl_close.astype(np.float32)])
+        dl = np.empty((k, 3), np.float32)
+        for i in range(3):
+            dl[:len(far), i] = to[i] * inv
+        dl[len(far):] = dl_close
         dist = np.concatenate([dist_far, dist_close])
         e = np.take(e, order)
-        cos_y = _dot(_rows(normals, order), dl)
-        cos_l = -_dot(_rows(n_l, order), dl)
-        cos_l = np.where(np.take(self.emitter_two_sided, e), np.abs(cos_l), cos_l)
+        d = (dl[:, 0], dl[:, 1], dl[:, 2])
+        cos_y = _dot3(tuple(np.take(normals[:, i], order) for i in range(3)), d)
+        cos_l = -_dot3(tuple(np.take(c, order) for c in n_l), d)
+        if self.any_two_sided:
+            cos_l = np.where(np.take(self.emitter_two_sided, e), np.abs(cos_l), cos_l)
         ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (dist > 0))
         if len(ok) == 0:
             return out
@@ -555,14 +570,15 @@ class IndirectTracer:
         out[np.take(order, vis)] = _rows(self.emitter_radiance, ev) * (q / (p_light + q))[:, None]
         return out
 
-    def _near(self, origins, e, normal=None):
+    def _near(self, origins, e):
         """Light-sampling strategy per (ray origin ``origins (k, 3)`` float32, emitter triangle
         ``e``), as Cycles chooses it: solid-angle sampling when the triangle's longest edge
-        exceeds the origin's distance to its plane (``normal``: the triangles' normals, if already
-        gathered). NEE and the MIS weight of emitter hits call this with the same float32 origins,
-        so they always agree on the strategy."""
-        normal = _rows(self.emitter_normal32, e) if normal is None else normal
-        d_plane = _dot(origins, normal) - np.take(self.emitter_plane32, e)
+        exceeds the origin's distance to its plane. ``_direct`` computes the same expression
+        inline, with the same float32 operations in the same order, so NEE and the MIS weight
+        of emitter hits always agree on the strategy."""
+        o = (origins[:, 0], origins[:, 1], origins[:, 2])
+        n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
+        d_plane = _dot3(o, n_l) - np.take(self.emitter_plane32, e)
         return np.take(self.emitter_longest2, e) > d_plane * d_plane
 
     def _emission_hits(self, origins, d, tri, dist, cos_from, rays):
