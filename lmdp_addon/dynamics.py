@@ -35,8 +35,10 @@ from .states import GOLDEN
 WORLD = "world"
 VOID = "void"
 
-#: Target rays per batch of the build loop.
-RAYS_PER_BATCH = 1 << 19
+#: Target rays per batch of the build loop. Small enough that even a build of a few thousand
+#: points is cut into several batches that overlap on the cores (measured on 2 cores, Cornell
+#: box: 2048 points 0.09 -> 0.07 s, 16384 points 0.48 -> 0.42 s going from 2^19 to 2^16 rays).
+RAYS_PER_BATCH = 1 << 16
 #: Batches processed concurrently.
 BUILD_THREADS = 3
 
@@ -126,14 +128,14 @@ def estimate_build_bytes(n_points, n_strata, rays_per_stratum, light_samples=0, 
     stratum-resolved matrix and of P, float32 + int32, twice during assembly; measured 18 B),
     48 B per light sample (measured 47 B), 1 KiB per point (state arrays, the locator's grid
     of about 16 cells per point), 256 B per triangle (the embree BVH and per-triangle tables),
-    200 B per ray of one batch of ray arrays, and 8 MiB of fixed overhead. Measured against
-    this estimate: 19.6 / 23.7 MiB at 1000 points, 344 / 383 MiB at 62 500 points (4 x 4
-    strata, 4 rays, 32 light samples; Cornell box), 159 / 204 MiB at 8000 points on the
-    249 k-triangle heavy scene.
+    200 B per ray of the ``BUILD_THREADS`` batches in flight, and 8 MiB of fixed overhead.
+    Measured against this estimate (``bench/worker.py build``, batches of 2^16 rays): 19.3 / 24.6 MiB at 1000
+    points, 198 / 320 MiB at 62 500 points (4 x 4 strata, 4 rays, 32 light samples; Cornell box),
+    125 / 141 MiB at 8000 points on the 249 k-triangle heavy scene.
     """
     rays = int(n_points) * int(n_strata) * int(rays_per_stratum)
     return (32 * rays + 48 * int(n_points) * int(light_samples) + 1024 * int(n_points)
-            + 256 * int(n_triangles) + 200 * min(rays, RAYS_PER_BATCH) + 8 * 1024 ** 2)
+            + 256 * int(n_triangles) + 200 * min(rays, BUILD_THREADS * RAYS_PER_BATCH) + 8 * 1024 ** 2)
 
 
 def check_budget(n_points, n_strata, rays_per_stratum, budget_gb, light_samples=0, n_triangles=0):
