@@ -15,9 +15,9 @@ guide and cosine sampling. Every batch mean is therefore an unbiased estimate on
 batch means are independent, and their spread gives each texel's standard error
 (``ObjectBake.standard_error``) without assuming anything about the estimator's variance.
 
-Work is cut into equal units of at most about :data:`PATHS_PER_UNIT` paths (bounded memory); unit u of
-object o and batch b draws its random numbers from ``default_rng([seed, o, b, u])``, so a bake is
-deterministic for a seed whatever the thread scheduling. Units run on a small thread pool
+Work is cut into equal units of at most about :data:`PATHS_PER_UNIT` paths (bounded memory);
+unit u of object o and batch b draws its random numbers from ``default_rng([seed, o, b, u])``, so
+a bake is deterministic for a seed whatever the thread scheduling. Units run on a small thread pool
 (embree and numpy release the GIL); ``progress.update`` between units raises ``Cancelled`` when
 the user asked to stop, and nothing is returned.
 """
