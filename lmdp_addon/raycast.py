@@ -31,6 +31,7 @@ class RayCaster:
         if len(valid) == 0:
             raise SceneError("The scene has no triangles with non-zero area to trace rays against")
         self.triangle_ids = valid.astype(np.int64)
+        self._identity = len(valid) == scene.n_triangles   # embree's primID is the triangle
         corners = scene.corners()[valid].astype(np.float32)
         self._embree = rtcore_scene.EmbreeScene()
         TriangleMesh(self._embree, np.ascontiguousarray(corners))
@@ -44,40 +45,42 @@ class RayCaster:
         triangle's second and third corner).
         """
         n = len(origins)
-        tri = np.empty(n, dtype=np.int64)
-        dist = np.empty(n, dtype=np.float32)
-        if barycentrics:
-            bu = np.empty(n, dtype=np.float32)
-            bv = np.empty(n, dtype=np.float32)
+        chunks = []
         for start in range(0, n, BATCH):
             stop = min(start + BATCH, n)
             o = np.ascontiguousarray(origins[start:stop], dtype=np.float32)
             d = np.ascontiguousarray(directions[start:stop], dtype=np.float32)
             res = self._embree.run(o, d, output=1)
-            prim = res["primID"].astype(np.int64)
+            prim = res["primID"]                       # -1 for a miss
             hit = prim >= 0
-            tri[start:stop] = np.where(hit, self.triangle_ids[np.where(hit, prim, 0)], -1)
-            dist[start:stop] = np.where(hit, res["tfar"], np.inf)
-            if barycentrics:
-                bu[start:stop] = res["u"]
-                bv[start:stop] = res["v"]
+            if self._identity:
+                tri = prim.astype(np.int64)
+            else:
+                tri = np.where(hit, np.take(self.triangle_ids, np.maximum(prim, 0)), -1)
+            dist = np.where(hit, res["tfar"], np.float32(np.inf))
+            chunks.append((tri, dist, res["u"], res["v"]) if barycentrics else (tri, dist))
         self.rays_cast += n
-        if barycentrics:
-            return tri, dist, bu, bv
-        return tri, dist
+        if len(chunks) == 1:
+            return chunks[0]
+        if not chunks:
+            empty = (np.zeros(0, np.int64), np.zeros(0, np.float32))
+            return empty + (np.zeros(0, np.float32),) * 2 if barycentrics else empty
+        return tuple(np.concatenate(parts) for parts in zip(*chunks))
 
     def occluded(self, origins, directions, distances):
         """True where something blocks the segment ``origin + t·direction, 0 < t < distance``."""
         n = len(origins)
-        out = np.empty(n, dtype=bool)
+        chunks = []
         for start in range(0, n, BATCH):
             stop = min(start + BATCH, n)
             o = np.ascontiguousarray(origins[start:stop], dtype=np.float32)
             d = np.ascontiguousarray(directions[start:stop], dtype=np.float32)
             t = np.ascontiguousarray(distances[start:stop], dtype=np.float32)
-            out[start:stop] = self._embree.run(o, d, dists=t, query="OCCLUDED") >= 0
+            chunks.append(self._embree.run(o, d, dists=t, query="OCCLUDED") >= 0)
         self.rays_cast += n
-        return out
+        if len(chunks) == 1:
+            return chunks[0]
+        return np.concatenate(chunks) if chunks else np.zeros(0, dtype=bool)
 
     def offset(self):
         """Origin offset along the normal, relative to the scene size (metres)."""
