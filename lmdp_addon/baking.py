@@ -50,6 +50,9 @@ MAX_BATCHES = 8
 #: measured on the Cornell box floor (2048 points, 64 samples, 6 seeds), GUIDED's variance per
 #: sample relative to UNGUIDED's is 1.11 with 1, 0.99 with 16, 0.98 with 32 and 1.11 with 128.
 GUIDE_NEIGHBOURS = 16
+#: Most texels (summed over objects) whose rasterisation ``check_bake_inputs`` keeps for the bake
+#: (~200 B each); objects beyond it are rasterised again when their turn comes.
+TEXEL_CACHE_LIMIT = 1 << 22
 #: Suffix of the images the add-on writes.
 IMAGE_SUFFIX = "_lmdp_indirect"
 
@@ -184,14 +187,15 @@ def object_texels(scene, index, resolution, reverse=False):
     return ts, tris
 
 
-def uv_overlaps(scene, index, resolution):
+def uv_overlaps(scene, index, resolution, forward=None):
     """Texels whose centre two or more of the object's UV triangles cover: ``(count, (row, col))``.
 
     Rasterising in both triangle orders (the last triangle wins a texel, like Blender) gives a
     different triangle exactly where several cover the same texel centre; shared edges cover a
-    centre once, so adjacent triangles never count.
+    centre once, so adjacent triangles never count. ``forward``: ``object_texels(scene, index,
+    resolution)`` if the caller has it already.
     """
-    a, ta = object_texels(scene, index, resolution)
+    a, ta = forward if forward is not None else object_texels(scene, index, resolution)
     b, tb = object_texels(scene, index, resolution, reverse=True)
     differs = ta[a.triangle] != tb[b.triangle]
     count = int(np.count_nonzero(differs))
@@ -209,14 +213,16 @@ def scene_fingerprint(scene):
     return h.hexdigest()
 
 
-def check_bake_inputs(scene, names, settings, lmdp=None, will_solve=False):
+def check_bake_inputs(scene, names, settings, lmdp=None, will_solve=False, texels=None):
     """Raise :class:`SceneError` / :class:`StageOrderError` (user messages) before any work.
 
     Checks: resolution and samples >= 1, the mode, every object has a UV map, covers at least one
     texel and has no overlapping UVs, the scene has light, GUIDED / FINAL_GATHER have a solution
     and FINAL_GATHER a PHYSICAL one of this very scene. ``will_solve``: the caller solves this
     scene with ``settings`` before baking (Run All), so only the cost mode is checked. Returns the
-    warnings to show.
+    warnings to show. ``texels``: a dict that receives the checked objects' ``object_texels``
+    under ``(index, resolution)``, up to ``TEXEL_CACHE_LIMIT`` texels in all (the bake reuses
+    them instead of rasterising again).
     """
     warnings = []
     mode = settings.bake_mode
@@ -238,8 +244,12 @@ def check_bake_inputs(scene, names, settings, lmdp=None, will_solve=False):
                          "Lightmap Pack) or deselect them; the lightmap is laid out by the UV map")
     empty, overlapping = [], []
     for n, i in zip(names, indices):
-        count, example = uv_overlaps(scene, i, R)
-        ts, _ = object_texels(scene, i, R)
+        forward = object_texels(scene, i, R)
+        if texels is not None and (sum(len(t) for t, _ in texels.values()) + len(forward[0])
+                                   <= TEXEL_CACHE_LIMIT):
+            texels[(i, R)] = forward
+        count, example = uv_overlaps(scene, i, R, forward)
+        ts, _ = forward
         if len(ts) == 0:
             empty.append(n)
         elif count:
@@ -369,14 +379,16 @@ def _texel_subset(ts, sel):
 # -- the bake ---------------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
-                threads=BAKE_THREADS):
-    """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`."""
+                threads=BAKE_THREADS, texels=None):
+    """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``texels``: the
+    dict ``check_bake_inputs`` filled (optional)."""
     t0 = time.perf_counter()
     progress = progress if progress is not None else Progress()
     index = object_index(scene, name)
     R = int(settings.bake_resolution)
     N = int(settings.bake_samples)
-    ts, tris = object_texels(scene, index, R)
+    cached = texels.pop((index, R), None) if texels is not None else None
+    ts, tris = cached if cached is not None else object_texels(scene, index, R)
     n_tex = len(ts)
     B = batch_count(N)
     per_batch = N // B
@@ -483,7 +495,8 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     Returns :class:`BakeResult`. Raises the errors of :func:`check_bake_inputs`, or ``Cancelled``.
     """
     progress = progress if progress is not None else Progress()
-    warnings = check_bake_inputs(scene, list(names), settings, lmdp)
+    texels = {}
+    warnings = check_bake_inputs(scene, list(names), settings, lmdp, texels=texels)
     t0 = time.perf_counter()
     tracer, guide, info = make_tracer(scene, settings, lmdp)
     setup = time.perf_counter() - t0
@@ -491,7 +504,7 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     for number, name in enumerate(names):
         progress.begin(f"bake {name}")
         ob = bake_object(tracer, scene, name, settings, object_number=number, guide=guide,
-                         progress=progress, threads=threads)
+                         progress=progress, threads=threads, texels=texels)
         progress.end(f"{ob.n_texels} texels, {ob.stats.total_rays} rays in {ob.seconds:.2f} s "
                      f"({ob.stats.total_rays / max(ob.seconds, 1e-9) / 1e6:.2f} Mrays/s)")
         objects.append(ob)

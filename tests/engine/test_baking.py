@@ -37,6 +37,23 @@ def test_texels_are_the_texels_module_on_the_object_triangles(cornell):
     assert np.all(cornell.triangle_object[tris[ts.triangle]] == index)
 
 
+def test_the_bake_reuses_the_texels_its_input_check_rasterised(cornell, monkeypatch):
+    """Two rasterisations per object (the overlap check's two triangle orders), not three; past
+    TEXEL_CACHE_LIMIT an object is rasterised again when baked, with the same result."""
+    calls = []
+    original = baking.rasterize_texels
+    monkeypatch.setattr(baking, "rasterize_texels", lambda *a, **k: calls.append(1) or original(*a, **k))
+    names = ["Floor", "TallBox"]
+    cached = baking.bake(cornell, names, small())
+    assert len(calls) == 2 * len(names)
+    calls.clear()
+    monkeypatch.setattr(baking, "TEXEL_CACHE_LIMIT", 0)
+    again = baking.bake(cornell, names, small())
+    assert len(calls) == 3 * len(names)
+    for a, b in zip(cached.objects, again.objects):
+        np.testing.assert_array_equal(a.image, b.image)
+
+
 def test_bake_image_layout_margin_and_stats(cornell):
     r = baking.bake(cornell, ["Floor", "TallBox"], small(bake_margin=3))
     assert [o.name for o in r.objects] == ["Floor", "TallBox"]
