@@ -307,10 +307,11 @@ class GatherField:
         u = (cell[sel] // gv + 0.5) / loc.gu[t]
         v = (cell[sel] % gv + 0.5) / gv
         pos = c[t, 0] + u[:, None] * (c[t, 1] - c[t, 0]) + v[:, None] * (c[t, 2] - c[t, 0])
-        table[sel] = self._interpolate(pos, loc.face_normals[t], scene.triangle_object[t])
+        # Once per bake, before any path: the tree queries use every core.
+        table[sel] = self._interpolate(pos, loc.face_normals[t], scene.triangle_object[t], workers=-1)
         return table
 
-    def _interpolate(self, positions, side_normals, objects):
+    def _interpolate(self, positions, side_normals, objects, workers=1):
         loc = self.locator
         out = np.full((len(positions), 3), np.nan)
         for o, tree in loc.trees.items():  # loop over objects, not points
@@ -319,7 +320,7 @@ class GatherField:
                 continue
             k = min(self.neighbours, tree.n)
             q = np.hstack([positions[sel], loc.alpha[o] * side_normals[sel]])
-            d, nn = tree.query(q, k=k, workers=1)
+            d, nn = tree.query(q, k=k, workers=workers)
             if k == 1:
                 d, nn = d[:, None], nn[:, None]
             ids = loc.index[o][nn]
