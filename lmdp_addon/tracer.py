@@ -397,30 +397,26 @@ class IndirectTracer:
         self.n_emitter_triangles = len(em)
         if len(em):
             cdf = np.cumsum(weight)
-            self.emitter_cdf = cdf / cdf[-1]
             prob = weight / cdf[-1]
             c = scene.corners()[em]
+            self.emitter_cdf32 = (cdf / cdf[-1]).astype(np.float32)
             self.emitter_two_sided = scene.triangle_emission_two_sided[em]
+            self.any_two_sided = bool(np.any(self.emitter_two_sided))
             self.emitter_radiance = scene.triangle_emission[em].astype(np.float32)
             self.emitter_pdf_area = (prob / areas[em]).astype(np.float32)  #: p_A of a point on it
             self.emitter_prob = prob
+            # float64 corners and normals for solid-angle sampling (close emitters)
             self.emitter_corners64 = c
             self.emitter_corner64 = np.ascontiguousarray(c[:, 0])
-            self.emitter_edge1_64 = c[:, 1] - c[:, 0]
-            self.emitter_edge2_64 = c[:, 2] - c[:, 0]
             self.emitter_normal64 = np.ascontiguousarray(normals[em], dtype=np.float64)
-            self.emitter_normal32 = self.emitter_normal64.astype(np.float32)
-            self.emitter_corner32 = self.emitter_corner64.astype(np.float32)
-            self.emitter_edge1_32 = self.emitter_edge1_64.astype(np.float32)
-            self.emitter_edge2_32 = self.emitter_edge2_64.astype(np.float32)
-            self.emitter_plane32 = np.einsum("ij,ij->i", self.emitter_normal32, self.emitter_corner32)
-            self.emitter_cdf32 = self.emitter_cdf.astype(np.float32)
-            # The same tables per component (x, y, z) for next-event estimation.
-            self.emitter_normal32_xyz = tuple(np.ascontiguousarray(self.emitter_normal32[:, i]) for i in range(3))
-            self.emitter_corner32_xyz = tuple(np.ascontiguousarray(self.emitter_corner32[:, i]) for i in range(3))
-            self.emitter_edge1_32_xyz = tuple(np.ascontiguousarray(self.emitter_edge1_32[:, i]) for i in range(3))
-            self.emitter_edge2_32_xyz = tuple(np.ascontiguousarray(self.emitter_edge2_32[:, i]) for i in range(3))
-            self.any_two_sided = bool(np.any(self.emitter_two_sided))
+            # float32 tables per component (x, y, z) for area sampling and the strategy choice
+            normal32, corner32 = self.emitter_normal64.astype(np.float32), c[:, 0].astype(np.float32)
+            edge1, edge2 = (c[:, 1] - c[:, 0]).astype(np.float32), (c[:, 2] - c[:, 0]).astype(np.float32)
+            self.emitter_normal32_xyz = tuple(np.ascontiguousarray(normal32[:, i]) for i in range(3))
+            self.emitter_corner32_xyz = tuple(np.ascontiguousarray(corner32[:, i]) for i in range(3))
+            self.emitter_edge1_32_xyz = tuple(np.ascontiguousarray(edge1[:, i]) for i in range(3))
+            self.emitter_edge2_32_xyz = tuple(np.ascontiguousarray(edge2[:, i]) for i in range(3))
+            self.emitter_plane32 = np.einsum("ij,ij->i", normal32, corner32)
             self.emitter_longest2 = np.max(np.stack([np.sum((c[:, 1] - c[:, 0]) ** 2, axis=1),
                                                      np.sum((c[:, 2] - c[:, 1]) ** 2, axis=1),
                                                      np.sum((c[:, 0] - c[:, 2]) ** 2, axis=1)]),
