@@ -5,7 +5,8 @@ random points of a receiver, by path length, and with the scene's mesh light mad
 
 Prints, for UNGUIDED paths of 1, 2 and 8 bounces, the mean of the luminance of I = E_ind/π over
 the points and its variance per path relative to the squared mean (the number of samples per
-texel needed for a relative RMSE of 1 is this variance); then the same at 8 bounces with the
+texel needed for a relative RMSE of 1 is this variance), and the share of that variance the
+largest 0.1 % of the paths carry (a heavy tail: rare paths of large value); then the same at 8 bounces with the
 emitters made one-sided (front side only, as an area light): the difference is what the light's
 back side, hanging 5 mm below the ceiling in the built-in scenes, contributes to the mean and to
 the variance. Engine only (no Blender); a few seconds per scene.
@@ -22,6 +23,8 @@ from lmdp_addon import scenes  # noqa: E402
 from lmdp_addon.tracer import IndirectTracer  # noqa: E402
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+#: The tail reported: the share of the variance carried by this fraction of the paths.
+TAIL = 1e-3
 
 
 def receiver_points(scene, name, n, rng):
@@ -37,15 +40,22 @@ def receiver_points(scene, name, n, rng):
     return c[:, 0] + u[:, None] * (c[:, 1] - c[:, 0]) + v[:, None] * (c[:, 2] - c[:, 0]), normals[pick]
 
 
-def relative_variance(scene, points, normals, paths, bounces, rng):
-    """(mean, variance per path / mean²) of the luminance of UNGUIDED estimates at ``points``."""
+def relative_variance(scene, points, normals, paths, bounces, rng, tail=None):
+    """(mean, variance per path / mean²) of the luminance of UNGUIDED estimates at ``points``;
+    with ``tail`` = q also the share of the variance that the largest fraction q of the paths
+    carry (squared deviations from their point's mean)."""
     n = len(points)
     tracer = IndirectTracer(scene, "UNGUIDED", max_bounces=bounces)
     p, nn = np.repeat(points, paths, axis=0), np.repeat(normals, paths, axis=0)
     values, _ = tracer.trace(p, nn, np.full(n * paths, -1), rng.random((n * paths, 2)), rng.random(n * paths), rng)
     lum = (values.astype(np.float64) @ LUMINANCE).reshape(n, paths)
     mean = lum.mean()
-    return mean, lum.var(axis=1).mean() / mean ** 2
+    result = (mean, lum.var(axis=1).mean() / mean ** 2)
+    if tail is None:
+        return result
+    dev = np.sort(((lum - lum.mean(axis=1, keepdims=True)) ** 2).ravel())[::-1]
+    top = max(1, int(round(tail * dev.size)))
+    return result + (dev[:top].sum() / dev.sum(),)
 
 
 def main(argv=None):
@@ -61,11 +71,13 @@ def main(argv=None):
         points, normals = receiver_points(scene, name, args.points, rng)
         print(f"{kind} / {name}: {args.points} points x {args.paths} paths (UNGUIDED)")
         for bounces in (1, 2, 8):
-            mean, rv = relative_variance(scene, points, normals, args.paths, bounces, rng)
-            print(f"  up to {bounces} bounce(s): mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}")
+            mean, rv, share = relative_variance(scene, points, normals, args.paths, bounces, rng, tail=TAIL)
+            print(f"  up to {bounces} bounce(s): mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}, "
+                  f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
         scene.triangle_emission_two_sided = np.zeros_like(scene.triangle_emission_two_sided)
-        mean, rv = relative_variance(scene, points, normals, args.paths, 8, rng)
-        print(f"  one-sided light, 8 bounces: mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}")
+        mean, rv, share = relative_variance(scene, points, normals, args.paths, 8, rng, tail=TAIL)
+        print(f"  one-sided light, 8 bounces: mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}, "
+              f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
 
 
 if __name__ == "__main__":

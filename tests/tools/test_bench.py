@@ -183,6 +183,10 @@ def test_variance_anatomy_samples_the_receiver_and_reports_each_case(capsys):
     assert np.allclose(points[:, 2], 0.0, atol=1e-9) and np.all(normals[:, 2] > 0.5)
     mean, rv = variance_anatomy.relative_variance(scene, points[:50], normals[:50], 16, 8, rng)
     assert mean > 0 and np.isfinite(rv) and rv > 0
+    # The tail share grows with the fraction of paths and is 1 for all of them.
+    shares = [variance_anatomy.relative_variance(scene, points[:50], normals[:50], 16, 8,
+                                                 np.random.default_rng(1), tail=q)[2] for q in (0.01, 0.1, 1.0)]
+    assert 0 < shares[0] <= shares[1] <= shares[2] and shares[2] == pytest.approx(1.0)
     variance_anatomy.main(["CORNELL_BOX", "Floor", "--points", "32", "--paths", "8"])
     out = capsys.readouterr().out
     assert out.count("bounce(s)") == 3 and "one-sided light" in out
