@@ -51,8 +51,8 @@ MAX_BATCHES = 8
 #: sample relative to UNGUIDED's is 1.11 with 1, 0.99 with 16, 0.98 with 32 and 1.11 with 128.
 GUIDE_NEIGHBOURS = 16
 #: Most texels (summed over objects) whose rasterisation ``check_bake_inputs`` keeps for the bake
-#: (~200 B each); objects beyond it are rasterised again when their turn comes.
-TEXEL_CACHE_LIMIT = 1 << 22
+#: (120 B each, 120 MiB at the limit); objects beyond it are rasterised again in turn.
+TEXEL_CACHE_LIMIT = 1 << 20
 #: Suffix of the images the add-on writes.
 IMAGE_SUFFIX = "_lmdp_indirect"
 
