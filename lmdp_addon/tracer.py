@@ -63,6 +63,11 @@ from .hemisphere import QUARTER_PI
 from .raycast import RayCaster
 
 INV_PI = 1.0 / np.pi
+#: Largest angle (degrees) between the normals of states whose guide rows are averaged
+#: (``neighbour_average``). Measured on the bumpy HEAVY floor (64 samples, 4 seeds), GUIDED's
+#: variance per sample relative to UNGUIDED's: 1.08 with exactly equal normals only, 0.98 within
+#: 5°, 0.91 within 15°, 0.92 within 30°. Flat scenes are unaffected (their normals are equal).
+NEIGHBOUR_MAX_ANGLE = 15.0
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
 
 
@@ -200,24 +205,42 @@ class StateGuide:
         return np.where(k >= 0, g, 0.0)
 
 
-def neighbour_average(rows, locator, normals, neighbours):
+def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
     """Mean of the per-stratum distributions ``rows (m, S)`` (or several side by side, (m, n S):
     the mean is taken per column) over each point's ``neighbours`` nearest points (``locator``'s
-    6-D distance, same object) whose normal equals its own.
+    6-D distance, same object) whose normal is within ``max_angle`` degrees of its own
+    (default ``NEIGHBOUR_MAX_ANGLE``) and on the same side of the horizontal (below).
 
     u*(k|x) comes from ``R`` rays per stratum (thesis eq. 3.1), so a point's row is a Monte Carlo
     estimate whose noise easily exceeds the differences between neighbouring points. Points with
     the same normal have the same tangent frame (``hemisphere.tangent_frame``), hence the same
     strata, and the mean of their rows is again a distribution over those strata: a guide
-    estimated from ``neighbours`` x as many rays. Any such rows keep the guided estimator
-    unbiased (the pdf is evaluated from the same table it is sampled from); only its variance
-    changes (measured: ``baking.GUIDE_NEIGHBOURS``). Points with no same-normal neighbour keep
+    estimated from ``neighbours`` x as many rays. Points whose normals differ by a few degrees
+    (curved or bumpy surfaces) have strata turned by about as much; their mean is a slightly
+    blurred guide. The frame jumps where a normal's z changes sign (Duff et al.'s branch), so
+    points on either side are never mixed. Any rows keep the guided estimator unbiased (the pdf
+    is evaluated from the same table it is sampled from); only its variance changes (measured:
+    ``baking.GUIDE_NEIGHBOURS``, ``NEIGHBOUR_MAX_ANGLE``). Points with no such neighbour keep
     their row.
     """
     rows = np.asarray(rows, dtype=np.float64)
     out = rows.copy()
     if neighbours <= 1:
         return out
+    cos_max = np.cos(np.radians(NEIGHBOUR_MAX_ANGLE if max_angle is None else max_angle))
+    for o, tree in locator.trees.items():  # loop over objects, not points
+        ids = locator.index[o]
+        k = min(int(neighbours), len(ids))
+        if k <= 1:
+            continue
+        _, nn = tree.query(tree.data, k=k, workers=1)
+        near = ids[nn]                                                   # (n_o, k)
+        close = np.einsum("ij,ikj->ik", normals[ids], normals[near]) >= cos_max
+        branch = (normals[ids, 2] >= 0.0)[:, None] == (normals[near, 2] >= 0.0)
+        same = close & branch
+        w = same / same.sum(axis=1, keepdims=True)                       # self is always in
+        out[ids] = np.einsum("ik,iks->is", w, rows[near])
+    return out
     for o, tree in locator.trees.items():  # loop over objects, not points
         ids = locator.index[o]
         k = min(int(neighbours), len(ids))

@@ -307,11 +307,43 @@ def test_neighbour_average_is_a_distribution_over_shared_strata_and_denoises_the
     err_raw = np.abs(u_raw - u_ref).sum(axis=1).mean()
     err_avg = np.abs(u_avg - u_ref).sum(axis=1).mean()
     assert err_avg < 0.8 * err_raw, (err_avg, err_raw)
-    # One neighbour is the identity; a point whose normal no other point shares keeps its row.
+    # One neighbour is the identity; a point whose normal is farther than NEIGHBOUR_MAX_ANGLE
+    # from every other point's keeps its row.
     np.testing.assert_array_equal(neighbour_average(u_raw, locator, states.normals, 1), u_raw)
     lonely = states.normals.copy()
-    lonely[0] = _unit_vector(lonely[0] + 0.01)
+    lonely[0] = _unit_vector(lonely[0] + 0.5 * _unit_vector(np.cross(lonely[0], [0.3, 0.5, 0.8])))
     np.testing.assert_array_equal(neighbour_average(u_raw, locator, lonely, GUIDE_NEIGHBOURS)[0], u_raw[0])
+
+
+def test_neighbour_average_mixes_nearly_equal_normals_on_the_same_frame_branch():
+    """Within NEIGHBOUR_MAX_ANGLE normals count as equal, but never across a sign change of the
+    normal's z (where the tangent frame jumps); each point's row is the mean of exactly those."""
+    from lmdp_addon.dynamics import StateLocator
+    from lmdp_addon.states import sample_states
+    from lmdp_addon.tracer import NEIGHBOUR_MAX_ANGLE, neighbour_average
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    states = sample_states(scene, 256, 2, 2, seed=3)
+    locator = StateLocator(scene, states)
+    rng = np.random.default_rng(4)
+    # Tilt every normal at random by up to 2 x the tolerance; on the back wall (normal -y,
+    # z = 0) the tilt flips the sign of z at random.
+    normals = np.array([_unit_vector(n + np.tan(np.radians(2 * NEIGHBOUR_MAX_ANGLE)) * rng.random()
+                                     * _unit_vector(rng.normal(size=3))) for n in states.normals])
+    rows = np.eye(len(normals))                   # row i marks point i: the mean shows who is in
+    out = neighbour_average(rows, locator, normals, 16)
+    cos_max = np.cos(np.radians(NEIGHBOUR_MAX_ANGLE))
+    mixed_any = flipped = 0
+    for o, tree in locator.trees.items():
+        ids = locator.index[o]
+        _, nn = tree.query(tree.data, k=min(16, len(ids)))
+        for i, row in zip(ids, ids[nn]):
+            ok = (normals[row] @ normals[i] >= cos_max) & ((normals[row, 2] >= 0) == (normals[i, 2] >= 0))
+            expected = np.zeros(len(normals))
+            expected[row[ok]] = 1.0 / ok.sum()
+            np.testing.assert_allclose(out[i], expected, atol=1e-12)
+            mixed_any += ok.sum() > 1
+            flipped += np.any((normals[row] @ normals[i] >= cos_max) & ~ok)
+    assert mixed_any > 0 and flipped > 0  # both rules were exercised
 
 
 def _unit_vector(v):
