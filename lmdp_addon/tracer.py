@@ -241,17 +241,6 @@ def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
         w = same / same.sum(axis=1, keepdims=True)                       # self is always in
         out[ids] = np.einsum("ik,iks->is", w, rows[near])
     return out
-    for o, tree in locator.trees.items():  # loop over objects, not points
-        ids = locator.index[o]
-        k = min(int(neighbours), len(ids))
-        if k <= 1:
-            continue
-        _, nn = tree.query(tree.data, k=k, workers=1)
-        near = ids[nn]                                                   # (n_o, k)
-        same = np.einsum("ij,ikj->ik", normals[ids], normals[near]) > 1.0 - 1e-9
-        w = same / same.sum(axis=1, keepdims=True)                       # self is always in
-        out[ids] = np.einsum("ik,iks->is", w, rows[near])
-    return out
 
 
 def stratum_of_local(local, strata_u, strata_v):
