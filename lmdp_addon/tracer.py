@@ -523,8 +523,7 @@ class IndirectTracer:
         origin = points + self.eps * normals
         o = (origin[:, 0], origin[:, 1], origin[:, 2])
         n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
-        d_plane = _dot3(o, n_l) - np.take(self.emitter_plane32, e)
-        near = np.take(self.emitter_longest2, e) > d_plane * d_plane   # = self._near(origin, e)
+        near = self._near(origin, e, n_l)
         far = np.flatnonzero(~near)
         close = np.flatnonzero(near)
         # Far: uniform on the triangle (area measure), float32.
@@ -579,14 +578,15 @@ class IndirectTracer:
         out[np.take(order, vis)] = _rows(self.emitter_radiance, ev) * (q / (p_light + q))[:, None]
         return out
 
-    def _near(self, origins, e):
+    def _near(self, origins, e, n_l=None):
         """Light-sampling strategy per (ray origin ``origins (k, 3)`` float32, emitter triangle
         ``e``), as Cycles chooses it: solid-angle sampling when the triangle's longest edge
-        exceeds the origin's distance to its plane. ``_direct`` computes the same expression
-        inline, with the same float32 operations in the same order, so NEE and the MIS weight
-        of emitter hits always agree on the strategy."""
+        exceeds the origin's distance to its plane (``n_l``: the triangles' normals per
+        component, if already gathered). NEE and the MIS weight of emitter hits both call this
+        with the same float32 origins, so they always agree on the strategy."""
         o = (origins[:, 0], origins[:, 1], origins[:, 2])
-        n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
+        if n_l is None:
+            n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
         d_plane = _dot3(o, n_l) - np.take(self.emitter_plane32, e)
         return np.take(self.emitter_longest2, e) > d_plane * d_plane
 
