@@ -245,11 +245,10 @@ def sample_footprint(texels, n, rng, include_center=True):
     b0 = c0 + d[:, None, 0, 0] * off[..., 0] + d[:, None, 0, 1] * off[..., 1]
     b1 = c1 + d[:, None, 1, 0] * off[..., 0] + d[:, None, 1, 1] * off[..., 1]
     pending = ~((b0 > 0.0) & (b1 > 0.0) & (b0 + b1 < 1.0))
-    if include_center and n > 0:
-        pending[:, 0] = True           # the centre sample: set below
     b0 = np.where(pending, c0, b0)     # texel point until a redraw lands in the triangle
     b1 = np.where(pending, c1, b1)
-    if include_center and n > 0:
+    if include_center and n > 0:       # sample 0 is the texel point itself
+        b0[:, 0], b1[:, 0] = c0[:, 0], c1[:, 0]
         pending[:, 0] = False
     for _ in range(JITTER_ATTEMPTS - 1):  # redraws of the few that fell outside
         idx = np.nonzero(pending)
