@@ -329,11 +329,22 @@ def build_guide(scene, lmdp):
 
 
 def build_gather(guide, lmdp):
-    """:class:`GatherField` of the PHYSICAL solution: irradiance/π ``z/ρ`` of every state."""
+    """:class:`GatherField` of the PHYSICAL solution: the *indirect* irradiance/π of every state,
+
+        ẑ_ind = P_NN z_N + P_NW z_W        (eq. 2.22 without the emitter terminals' term),
+
+    the light that reaches a state after at least one bounce (plus the world's). The tracer adds
+    the direct part at the exact gather point by light sampling: direct light changes within
+    millimetres near an emitter (the gap between a two-sided light and the ceiling lights the
+    ceiling above it with nearly the emitter's radiance and the ceiling a few millimetres beside
+    it hardly at all), so read from the states it would leak across the spacing.
+    """
+    problem = lmdp.lmdp
+    E = len(lmdp.dynamics.emitter_radiance)
     z = np.asarray(lmdp.solution.z, dtype=np.float64)
-    rho = np.asarray(lmdp.states.point_albedo, dtype=np.float64)
-    irradiance = np.where(rho > 0, z / np.where(rho > 0, rho, 1.0), 0.0)
-    return GatherField(locator=guide.locator, irradiance=irradiance, same_scene=guide.same_scene,
+    P_NT = problem.P_NT[:, E:]                           # world and void, not the emitters
+    indirect = (np.asarray(problem.P_NN @ z) + np.asarray(P_NT @ problem.z_terminal[E:]))
+    return GatherField(locator=guide.locator, irradiance=np.maximum(indirect, 0.0), same_scene=guide.same_scene,
                        object_map=guide.object_map)
 
 

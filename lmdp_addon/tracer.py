@@ -48,9 +48,11 @@ Direction sampling at a vertex with shading normal n:
   wanted there arrives after a bounce); later vertices use ``'points+world'`` (emitters are
   covered by NEE, the world by escaping rays);
 * ``FINAL_GATHER``: the first direction is drawn as in GUIDED; at its hit y_1 the PHYSICAL-mode
-  solution replaces the rest of the path: ``L_r(y_1) ≈ ρ(y_1) ẑ(y_1)`` with ẑ the irradiance
-  ``z/ρ`` of the nearby compatible states, interpolated (``GatherField``). Hits without a nearby
-  compatible state continue as a GUIDED path. Biased by the discretisation of the solution.
+  solution replaces the rest of the path: ``L_r(y_1) ≈ ρ(y_1) (ẑ_ind(y_1) + D_e(y_1))`` with
+  ẑ_ind the indirect irradiance/π of the nearby compatible states, interpolated
+  (``GatherField``), and D_e the direct light at y_1 itself by light sampling (one shadow ray).
+  Hits without a nearby compatible state continue as a GUIDED path. Biased by the discretisation
+  of ẑ_ind.
 
 Arrays are float32 in the hot loop (positions of scenes of metres keep ~1e-7 relative precision,
 ray origins are offset by ``RayCaster.offset()``, 1e-5 of the scene size).
@@ -284,7 +286,8 @@ def _row_cdf(p):
 
 @dataclass
 class GatherField:
-    """Irradiance/π ẑ = z/ρ of the PHYSICAL solution, interpolated between states.
+    """Irradiance/π ẑ of the PHYSICAL solution, interpolated between states: the *indirect*
+    part ẑ_ind (``baking.build_gather``; the tracer adds the direct part at the gather point).
 
     ``value_at(...)`` returns (k, 3) ẑ at surface points (NaN where no compatible state is
     near): inverse-squared-distance weights over the ``neighbours`` nearest compatible states
@@ -294,7 +297,7 @@ class GatherField:
     """
 
     locator: object
-    irradiance: np.ndarray          #: (m, 3) z/ρ of every state point (W / sr m²)
+    irradiance: np.ndarray          #: (m, 3) ẑ of every state point (W / sr m²)
     neighbours: int = 8
     same_scene: bool = True
     object_map: np.ndarray = None
@@ -493,8 +496,10 @@ class IndirectTracer:
         return d, w.astype(np.float32), cos
 
     # -- next-event estimation -------------------------------------------------------------------
-    def _direct(self, points, normals, rng, stats):
-        """(k, 3) light-sampling half of the MIS estimate of D_e(y) = (1/π) ∫ L_e cos θ dω.
+    def _direct(self, points, normals, rng, stats, mis=True):
+        """(k, 3) light-sampling half of the MIS estimate of D_e(y) = (1/π) ∫ L_e cos θ dω
+        (``mis=False``: the whole of D_e(y) by light sampling alone, weight ``q / p_L``; for
+        paths that end at y).
 
         One point on the emitters (triangle ∝ area x max radiance) with the weight
         ``q / (p_L + q)``: ``p_L`` is the light-sampling density per steradian and
@@ -575,7 +580,8 @@ class IndirectTracer:
             p_light[solid] = (np.take(self.emitter_prob, np.take(ev, solid))
                               / np.maximum(np.take(omega, np.take(vis, solid) - len(far)), 1e-300))
         q = np.take(cos_y, vis) * np.float32(INV_PI)
-        out[np.take(order, vis)] = _rows(self.emitter_radiance, ev) * (q / (p_light + q))[:, None]
+        weight = q / (p_light + q) if mis else q / p_light
+        out[np.take(order, vis)] = _rows(self.emitter_radiance, ev) * weight[:, None]
         return out
 
     def _near(self, origins, e, n_l=None):
@@ -672,7 +678,11 @@ class IndirectTracer:
             if bounce == 1 and self.gather is not None:
                 value = self.gather.value_at(tri, bu, bv, pos, nrm, front, objs)
                 done = ~np.isnan(value[:, 0])
-                L[idx[done]] += beta[done] * value[done].astype(np.float32)
+                # Radiance leaving y_1: ρ (ẑ_ind + D_e), the direct part by light sampling at
+                # y_1 itself (see baking.build_gather); the path ends here.
+                g = np.flatnonzero(done)
+                direct = self._direct(_rows(pos, g), _rows(nrm, g), rng, stats, mis=False)
+                L[idx[g]] += _rows(beta, g) * (value[g].astype(np.float32) + direct)
                 stats.gathered += int(done.sum())
                 stats.gather_fallback += int((~done).sum())
                 live = np.flatnonzero(~done)
