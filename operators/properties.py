@@ -36,8 +36,8 @@ BAKE_MODE_ITEMS = (
      "Path tracing with directions drawn from a mixture of the optimal policy u* and cosine "
      "sampling: unbiased, lower variance where light arrives from few directions"),
     ("FINAL_GATHER", "Final Gather",
-     "One guided bounce, then the PHYSICAL-mode solution at the hit: very fast, biased by the "
-     "discretisation"),
+     "One guided bounce, then the PHYSICAL-mode solution's indirect light at the hit plus the "
+     "direct light sampled there: fast, biased by the discretisation"),
 )
 DISPLAY_QUANTITY_ITEMS = (
     ("Z", "Desirability z",

@@ -207,6 +207,8 @@ def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
     assert abs(biases[1]) < abs(biases[0]), biases
 
 
-#: The range quoted in README.md ("Baking"): seeds 0-2 measured +23 % .. +27 % at 2048 points
-#: (+12 % at 8192) on the engine's scene arrays of the same box.
-FINAL_GATHER_BIAS_RANGE = (0.15, 0.35)
+#: The range quoted in README.md ("Baking"): seeds 0-2 measured +9.0 % .. +11.1 % at 2048 points
+#: (+5.0 % .. +6.3 % at 8192) on the engine's scene arrays of the same box (128 px, 64 samples,
+#: against the benchmark's 1024-sample Cycles reference). Before the direct light was sampled at
+#: the gather point: +23 % .. +27 %.
+FINAL_GATHER_BIAS_RANGE = (0.05, 0.16)
