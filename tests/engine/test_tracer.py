@@ -121,9 +121,10 @@ def test_patch_under_sky_guided_is_unbiased(solved_patch):
 
 
 def test_patch_under_sky_final_gather(solved_patch):
-    """FINAL_GATHER reads z/ρ of the patch states (their sky fraction, estimated by the dynamics'
-    rays): its bias here is the discretisation error of that fraction, measured against the
-    analytic value. The bound is the spread of z/ρ over the patch states it interpolates."""
+    """FINAL_GATHER reads ẑ_ind of the patch states: here all of z/ρ, since the sky is the only
+    light and it is not an emitter triangle, i.e. their sky fraction estimated by the dynamics'
+    rays. Its bias is the discretisation error of that fraction, measured against the analytic
+    value. The bound is the spread of ẑ over the patch states it interpolates."""
     scene, lmdp = solved_patch
     guide = build_guide(scene, lmdp)
     gather = build_gather(guide, lmdp)
@@ -136,7 +137,6 @@ def test_patch_under_sky_final_gather(solved_patch):
     mean, _ = assert_within(values, expected_patch_indirect(),
                             extra=np.asarray(PATCH_ALBEDO) * spread / np.sqrt(patch.sum()) * 5 + 1e-3)
     assert stats.rays == stats.paths  # one ray per path
-
 
 
 def patch_over_lamp(gap=0.005):
