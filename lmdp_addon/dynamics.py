@@ -25,11 +25,9 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .errors import BudgetError
-from .hemisphere import (square_to_hemisphere, stratum_of_local_direction, stratum_square_samples,
-                         world_to_local)
-from .lights import EmitterSampler, connection
-from .raycast import RayCaster, offset_origins
-from .states import GOLDEN
+from .hemisphere import square_to_hemisphere, stratum_of_local_direction, stratum_square_samples
+from .lights import EmitterSampler
+from .raycast import RayCaster
 
 #: Column roles after the point columns.
 WORLD = "world"
@@ -126,16 +124,19 @@ def estimate_build_bytes(n_points, n_strata, rays_per_stratum, light_samples=0, 
     Terms, with coefficients measured (peak resident memory of the build in its own process,
     ``bench/worker.py``) and rounded up: 32 B per stratum ray (it can become a non-zero of the
     stratum-resolved matrix and of P, float32 + int32, twice during assembly; measured 18 B),
-    48 B per light sample (measured 47 B), 1 KiB per point (state arrays, the locator's grid
-    of about 16 cells per point), 256 B per triangle (the embree BVH and per-triangle tables),
-    200 B per ray of the ``BUILD_THREADS`` batches in flight, and 8 MiB of fixed overhead.
-    Measured against this estimate (``bench/worker.py build``, batches of 2^16 rays): 19.3 / 24.6 MiB at 1000
-    points, 198 / 320 MiB at 62 500 points (4 x 4 strata, 4 rays, 32 light samples; Cornell box),
-    125 / 141 MiB at 8000 points on the 249 k-triangle heavy scene.
+    48 B per light sample (measured 47 B), 2 KiB per point (state arrays, the locator's grid of
+    about 16 to 24 cells per point and its temporaries), 768 B per triangle (the embree BVH and
+    per-triangle tables, built at the same time as the locator's grid, which has at least one
+    cell per triangle), 200 B per ray of the ``BUILD_THREADS`` batches in flight, and 8 MiB of
+    fixed overhead. Measured against this estimate (``bench/worker.py build``, batches of 2^16
+    rays, 4 x 4 strata, 4 rays, 32 light samples): Cornell box 20.5 / 25.6 MiB at 1000 points,
+    248 / 381 MiB at 62 500 points; the 249 k-triangle heavy scene 150 / 226 MiB at 2000 points,
+    261 / 316 MiB at 16 384 and 354 / 404 MiB at 32 768 points (the heaviest of a few runs: the
+    peak depends on how the locator's grid and the first batches overlap).
     """
     rays = int(n_points) * int(n_strata) * int(rays_per_stratum)
-    return (32 * rays + 48 * int(n_points) * int(light_samples) + 1024 * int(n_points)
-            + 256 * int(n_triangles) + 200 * min(rays, BUILD_THREADS * RAYS_PER_BATCH) + 8 * 1024 ** 2)
+    return (32 * rays + 48 * int(n_points) * int(light_samples) + 2048 * int(n_points)
+            + 768 * int(n_triangles) + 200 * min(rays, BUILD_THREADS * RAYS_PER_BATCH) + 8 * 1024 ** 2)
 
 
 def check_budget(n_points, n_strata, rays_per_stratum, budget_gb, light_samples=0, n_triangles=0):
@@ -162,12 +163,17 @@ class StateLocator:
     1/``CELLS_PER_SPACING`` of the point spacing along each edge: a front-face hit takes the
     nearest point of its cell's centre. This resolves the nearest point to a quarter of the
     spacing (a hit may go to a neighbour that is at most one cell diagonal farther than the
-    nearest; see ``tests/engine/test_dynamics.py`` for the measured rate). ``exact=True``
-    queries the trees for every hit instead. Back-face hits always query the trees.
+    nearest; see ``tests/engine/test_dynamics.py`` for the measured rate). The cells of large
+    triangles are filled a block at a time (:meth:`_fill_blocks`), with the same result as a
+    query per cell centre. ``exact=True`` queries the trees for every hit instead. Back-face
+    hits always query the trees.
     """
 
     CELLS_PER_SPACING = 4
     MAX_CELLS = 4096
+    #: Cells per block side and candidate points per block of :meth:`_fill_blocks`.
+    BLOCK = 4
+    BLOCK_CANDIDATES = 8
 
     def __init__(self, scene, states, exact=False):
         self.trees = {}
@@ -189,7 +195,6 @@ class StateLocator:
             self._build_grids(scene)
 
     def _build_grids(self, scene):
-        T = scene.n_triangles
         has_tree = np.zeros(len(scene.object_names), dtype=bool)
         has_tree[list(self.trees)] = True
         tri_ok = scene.state_triangles() & has_tree[scene.triangle_object]
@@ -206,20 +211,105 @@ class StateLocator:
         self.grid_point = np.full(int((self.gu * self.gv).sum()), -1, dtype=np.int32)
         if len(self.grid_point) == 0:
             return
-        # Enumerate only the cells that meet the triangle: in row i (u in [i, i+1)/gu) the
-        # cells j < gv (1 - i/gu) (vectorised over all rows of all triangles).
-        row_tri = np.repeat(np.arange(T), self.gu)
-        row_i = np.arange(len(row_tri)) - np.repeat(np.cumsum(self.gu) - self.gu, self.gu)
-        row_len = np.ceil(self.gv[row_tri] * (1.0 - row_i / self.gu[row_tri]) - 1e-9).astype(np.int64)
-        row_len = np.clip(row_len, 1, self.gv[row_tri])
-        t = np.repeat(row_tri, row_len)
+        big = (self.gu >= self.BLOCK) & (self.gv >= self.BLOCK)
+        self.cells_queried_exactly = 0
+        small = np.flatnonzero((self.gu > 0) & ~big)
+        if len(small):
+            t, i, j = self._cells(small)
+            u = (i + 0.5) / self.gu[t]
+            v = (j + 0.5) / self.gv[t]
+            pos = c[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
+            self.grid_point[self.grid_offset[t] + i * self.gv[t] + j] = self.locate(
+                pos, self.face_normals[t], scene.triangle_object[t])
+            self.cells_queried_exactly += len(t)
+        if np.any(big):
+            self._fill_blocks(scene, np.flatnonzero(big))
+
+    def _row_length(self, t, i):
+        """Cells of row i of triangle t's grid that meet the triangle: ``j < gv (1 - i/gu)``."""
+        n = np.ceil(self.gv[t] * (1.0 - i / self.gu[t]) - 1e-9).astype(np.int64)
+        return np.clip(n, 1, self.gv[t])
+
+    def _cells(self, tris):
+        """(t, i, j) of every cell of the grids of ``tris`` that meets its triangle (vectorised
+        over all rows of all triangles)."""
+        gu = self.gu[tris]
+        row_t = np.repeat(tris, gu)
+        row_i = np.arange(len(row_t)) - np.repeat(np.cumsum(gu) - gu, gu)
+        row_len = self._row_length(row_t, row_i)
+        t = np.repeat(row_t, row_len)
         i = np.repeat(row_i, row_len)
         j = np.arange(len(t)) - np.repeat(np.cumsum(row_len) - row_len, row_len)
-        u = (i + 0.5) / self.gu[t]
-        v = (j + 0.5) / self.gv[t]
-        pos = c[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
-        found = self.locate(pos, self.face_normals[t], scene.triangle_object[t])
-        self.grid_point[self.grid_offset[t] + i * self.gv[t] + j] = found
+        return t, i, j
+
+    def _fill_blocks(self, scene, tris):
+        """Exact nearest compatible point of the centre of every cell of the grids of ``tris``.
+
+        One tree query per block of ``BLOCK x BLOCK`` cells instead of one per cell: the
+        ``BLOCK_CANDIDATES`` nearest points of the block's centre c are the candidates of its
+        cells, and a cell centre x takes the nearest candidate, at distance d. Any point p
+        nearer to x lies within ``d + |x - c|`` of c, so where that is below the distance of
+        the last candidate the answer is exact; the few other cells query the tree themselves.
+        Distances are 6-D as in :meth:`locate`; within a triangle the normal part is the same
+        for x and c, so ``|p - x|² = |p - c|² - 2 (p - c)·(x - c) + |x - c|²``.
+        """
+        B, k_max = self.BLOCK, self.BLOCK_CANDIDATES
+        gu, gv = self.gu, self.gv
+        c = scene.corners()
+        e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+        # Blocks that meet the triangle: in block row I, those whose first cell is in row I*B.
+        brows = -(-gu[tris] // B)
+        row_t = np.repeat(tris, brows)
+        row_I = np.arange(len(row_t)) - np.repeat(np.cumsum(brows) - brows, brows)
+        per_row = -(-self._row_length(row_t, row_I * B) // B)
+        bt = np.repeat(row_t, per_row)
+        i0 = np.repeat(row_I, per_row) * B
+        j0 = (np.arange(len(bt)) - np.repeat(np.cumsum(per_row) - per_row, per_row)) * B
+        a = np.arange(B * B)
+        i = i0[:, None] + a // B                              # (blocks, B*B) cells
+        j = j0[:, None] + a % B
+        valid = i < gu[bt, None]
+        valid &= j < self._row_length(np.broadcast_to(bt[:, None], i.shape), np.minimum(i, gu[bt, None] - 1))
+        cu = (i0 + np.minimum(i0 + B, gu[bt])) / (2.0 * gu[bt])     # the block's centre (u, v)
+        cv = (j0 + np.minimum(j0 + B, gv[bt])) / (2.0 * gv[bt])
+        du = (i + 0.5) / gu[bt, None] - cu[:, None]                 # x - c = du e1 + dv e2
+        dv = (j + 0.5) / gv[bt, None] - cv[:, None]
+        e11 = np.einsum("ij,ij->i", e1[bt], e1[bt])[:, None]
+        e12 = np.einsum("ij,ij->i", e1[bt], e2[bt])[:, None]
+        e22 = np.einsum("ij,ij->i", e2[bt], e2[bt])[:, None]
+        dx = np.sqrt(np.maximum(du * du * e11 + 2.0 * du * dv * e12 + dv * dv * e22, 0.0))
+        centre = c[bt, 0] + cu[:, None] * e1[bt] + cv[:, None] * e2[bt]
+        found = np.full(i.shape, -1, dtype=np.int64)
+        sure = np.zeros(i.shape, dtype=bool)
+        objects = scene.triangle_object
+        for o, tree in self.trees.items():  # loop over objects, not cells
+            ob = np.flatnonzero(objects[bt] == o)
+            if len(ob) == 0:
+                continue
+            k = min(k_max, tree.n)
+            q = np.hstack([centre[ob], self.alpha[o] * self.face_normals[bt[ob]]])
+            dist, near = tree.query(q, k=k, workers=-1)
+            dist, near = dist.reshape(len(ob), 1, k), near.reshape(len(ob), 1, k)
+            rel = tree.data[near[:, 0]][..., :3] - centre[ob][:, None, :]      # p - c
+            g1 = -2.0 * np.einsum("bkj,bj->bk", rel, e1[bt[ob]])[:, None, :]
+            g2 = -2.0 * np.einsum("bkj,bj->bk", rel, e2[bt[ob]])[:, None, :]
+            score = dist ** 2 + du[ob, :, None] * g1 + dv[ob, :, None] * g2   # |p - x|² - |x - c|²
+            best = np.argmin(score, axis=2)[..., None]
+            d_best = np.sqrt(np.maximum(np.take_along_axis(score, best, axis=2)[..., 0]
+                                        + dx[ob] ** 2, 0.0))
+            sure[ob] = (k == tree.n) | (d_best + dx[ob] < dist[:, :, -1] * (1.0 - 1e-9))
+            ids = self.index[o][np.take_along_axis(near, best, axis=2)[..., 0]]
+            facing = np.einsum("bcj,bj->bc", self.normals[ids], self.face_normals[bt[ob]]) > 0.0
+            found[ob] = np.where(facing, ids, -1)
+        redo = valid & ~sure
+        if np.any(redo):
+            rt, ri, rj = bt[np.nonzero(redo)[0]], i[redo], j[redo]
+            pos = (c[rt, 0] + ((ri + 0.5) / gu[rt])[:, None] * e1[rt]
+                   + ((rj + 0.5) / gv[rt])[:, None] * e2[rt])
+            found[redo] = self.locate(pos, self.face_normals[rt], objects[rt])
+            self.cells_queried_exactly += int(np.count_nonzero(redo))
+        bt_cells = np.broadcast_to(bt[:, None], i.shape)[valid]
+        self.grid_point[self.grid_offset[bt_cells] + i[valid] * gv[bt_cells] + j[valid]] = found[valid]
 
     def locate_front(self, tri, u, v, positions=None, workers=-1):
         """Nearest compatible point for front-face hits on ``tri`` with barycentrics ``(u, v)``."""
@@ -288,6 +378,38 @@ class DirectionPatterns:
         return np.matmul(local, frames).reshape(-1, 3)      # rows of frames are t, b, n
 
 
+class LightPatterns:
+    """A pool of next-event patterns, one per point modulo the pool size: K points on the
+    emitters, stratified by area (``EmitterSampler.stratified``), each pattern with its own
+    random shift. As with :class:`DirectionPatterns`, every point's K samples are a stratified
+    set of uniform area samples, so its estimate stays unbiased, and the sampling runs once per
+    pattern instead of once per shadow ray.
+    """
+
+    def __init__(self, sampler, per_point, rng, pool=256):
+        self.sampler = sampler
+        self.pool = pool
+        sample = sampler.stratified(pool, per_point, rng)
+        self.position = sample.position.reshape(pool, per_point, 3)
+        self.triangle_index = sample.triangle_index.reshape(pool, per_point)
+        self.single = len(sampler.triangles) == 1
+
+    def of_points(self, point_ids):
+        """Emitter points ``(n, K, 3)`` and their emitter-triangle indices ``(n, K)``."""
+        p = point_ids % self.pool
+        return self.position[p], self.triangle_index[p]
+
+    def cos_emitter(self, omega, triangle_index):
+        """Cosine at the emitter of connections ``omega (n, K, 3)`` leaving the receivers; 0 where
+        they reach the back of a one-sided emitter."""
+        s = self.sampler
+        if self.single:  # the common single-quad light: no gathers
+            signed = -(omega @ s.normals[0])
+            return np.abs(signed) if s.two_sided[0] else np.maximum(signed, 0.0)
+        signed = -np.einsum("nki,nki->nk", omega, s.normals[triangle_index])
+        return np.where(s.two_sided[triangle_index], np.abs(signed), np.maximum(signed, 0.0))
+
+
 class HitClassifier:
     """Per-triangle lookup tables that turn closest hits into next-state columns.
 
@@ -303,7 +425,6 @@ class HitClassifier:
         self.world_col = n_points + E
         self.void_col = n_points + E + 1
         self.world_lit = bool(np.any(scene.world_radiance > 0))
-        T = scene.n_triangles
         carries = scene.object_carries_states[scene.triangle_object] & (tri_emitter < 0)
         # Column of a front hit for every triangle (-1: carrier, look the point up), plus a
         # sentinel row T for misses.
@@ -376,38 +497,56 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         raise BudgetError(f"Rays per Stratum must be at least 1 (got {R})")
     m, S = states.n_points, states.n_strata
     check_budget(m, S, R, memory_budget_gb, light_samples, scene.n_triangles)
-    caster = caster or RayCaster(scene)
     tri_emitter, emitter_radiance = scene.emitter_groups()
     E = len(emitter_radiance)
     n_cols = m + E + 2
-    locator = StateLocator(scene, states, exact=exact_nearest)
-    classifier = HitClassifier(scene, locator, m)
-    face_normals = locator.face_normals
-    rng = np.random.default_rng([int(seed), 0x1DA7])
-    patterns = DirectionPatterns(states.strata_u, states.strata_v, R, rng)
-    sampler = EmitterSampler(scene)
-    K = int(light_samples) if not sampler.empty else 0
-    normals = states.normals
+    face_normals = scene.triangle_geometry()[0]
+    # The locator's tables are built on a thread of their own while the BVH is built and the
+    # first batches are traced: only the classification of the hits waits for them.
+    pool = ThreadPoolExecutor(max_workers=BUILD_THREADS + 1)
+
+    def make_classifier():
+        tl = time.perf_counter()
+        locator = StateLocator(scene, states, exact=exact_nearest)
+        return locator, HitClassifier(scene, locator, m), time.perf_counter() - tl
+
+    tables = pool.submit(make_classifier)
+    try:
+        caster = caster or RayCaster(scene)
+        rng = np.random.default_rng([int(seed), 0x1DA7])
+        patterns = DirectionPatterns(states.strata_u, states.strata_v, R, rng)
+        sampler = EmitterSampler(scene)
+        K = int(light_samples) if not sampler.empty else 0
+        light = LightPatterns(sampler, K, rng) if K else None
+    except BaseException:
+        pool.shutdown(wait=True)
+        raise
     # Every ray leaves through the upper hemisphere of its point: offset along the normal.
-    lifted = (states.points + caster.offset() * states.normals).astype(np.float32)
+    lifted64 = states.points + caster.offset() * states.normals
+    lifted = lifted64.astype(np.float32)
     frames = states.frames.astype(np.float32)
     t_setup = time.perf_counter() - t0
 
     points_per_batch = max(1, RAYS_PER_BATCH // (S * R))
     weights_per_row = np.repeat(states.stratum_weight / R, R).astype(np.float32)
+    ray_rows = np.repeat(np.arange(points_per_batch * S, dtype=np.int32), R)
 
     def trace_batch(start):
-        """Rays of a batch of points -> CSR block of the stratum-resolved dynamics."""
+        """Rays of a batch of points -> CSR blocks of the stratum-resolved and the point-level
+        dynamics."""
         ids = np.arange(start, min(start + points_per_batch, m))
         dirs = patterns.directions(frames[ids], ids)
         origins = np.repeat(lifted[ids], S * R, axis=0)
         ta = time.perf_counter()
         tri, dist, bu, bv = caster.intersect(origins, dirs, barycentrics=True)
         tb = time.perf_counter()
-        col, c = classifier.classify(origins, dirs, tri, dist, bu, bv, workers=1)
-        # Rays come ordered by (point, stratum): each CSR row has exactly R entries.
+        # The next-event rows need no locator: they are done first, while it may still be built.
+        nee = _emitter_entries(ids) if K else None
+        col, c = tables.result()[1].classify(origins, dirs, tri, dist, bu, bv, workers=1)
+        # Rays come ordered by (point, stratum): each row has exactly R ray entries.
         n_rows = len(ids) * S
         weights = np.tile(weights_per_row, len(ids))
+        rows, cols = ray_rows[:n_rows * R], col.astype(np.int32)
         if K:  # MIS weight of the stratum rays that hit an emitter (docstring)
             hit_light = np.flatnonzero((col >= m) & (col < m + E))
             cos_x = patterns.local[ids % patterns.pool][..., 2].reshape(-1)[hit_light].astype(np.float64)
@@ -415,65 +554,77 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
             w_k = states.stratum_weight[np.tile(patterns.ray_stratum, len(ids))[hit_light]]
             p_light = dist[hit_light].astype(np.float64) ** 2 / (np.maximum(cos_y, 1e-12) * sampler.total_area)
             weights[hit_light] = (cos_x / np.pi) / (K * p_light + R * cos_x / (np.pi * w_k))
-        block = sp.csr_matrix((weights, col.astype(np.int32),
-                               np.arange(0, n_rows * R + 1, R, dtype=np.int64)), shape=(n_rows, n_cols))
-        if K:
-            block = block + _emitter_block(ids, start, n_rows, n_cols)
+            rows = np.concatenate([rows, nee[0]])
+            cols = np.concatenate([cols, nee[1]])
+            weights = np.concatenate([weights, nee[2]])
             c["nee_rays"] = len(ids) * K
-        block.sum_duplicates()
-        return block, c, tb - ta, time.perf_counter() - tb
+        block = sp.coo_matrix((weights, (rows, cols)), shape=(n_rows, n_cols)).tocsr()  # sums duplicates
+        # Point-level rows (the Lambertian reduction): point i's row is the sum of its S stratum
+        # rows, which are adjacent, so it takes (a copy of) their entries with every S-th row pointer.
+        point_block = sp.csr_matrix((block.data.copy(), block.indices.copy(), block.indptr[::S].copy()),
+                                    shape=(len(ids), n_cols))
+        point_block.sum_duplicates()
+        return block, point_block, c, tb - ta, time.perf_counter() - tb
 
-    def _emitter_block(ids, start, n_rows, n_cols):
-        """Next-event estimates of p(emitter | point, stratum) for a batch of points."""
-        batch_rng = np.random.default_rng([int(seed), 0x11E, int(start)])
-        owner = np.repeat(ids, K)
-        sample = sampler.stratified(len(ids), K, batch_rng)
+    def _emitter_entries(ids):
+        """Next-event estimates of p(emitter | point, stratum) for a batch of points:
+        (row in the batch, column, weight) of every unoccluded shadow ray (docstring)."""
+        pos, tri_index = light.of_points(ids)                 # (n, K, 3), (n, K)
+        d = pos - lifted64[ids][:, None, :]
+        dist2 = np.einsum("nki,nki->nk", d, d)
+        dist = np.sqrt(np.maximum(dist2, 1e-300))
+        omega = d / dist[..., None]
         # The shadow ray starts at the lifted point, so its direction and length are measured
         # from there: a connection measured from the surface point and traced from the lifted
         # one misses its target by the lift and grazing rays clip nearby geometry.
-        origin = lifted[owner]
-        omega, dist, cos_x, G = connection(origin.astype(np.float64), normals[owner], sample)
-        live = np.flatnonzero(G > 0)
-        eps = caster.offset()
-        blocked = caster.occluded(origin[live], omega[live], np.maximum(dist[live] - eps, 0.0))
-        live = live[~blocked]
-        local = world_to_local(omega[live], states.frames[owner[live]])
-        k = np.maximum(stratum_of_local_direction(local, states.strata_u, states.strata_v), 0)
-        cx = cos_x[live]
-        p_light = sample.pdf_area * cx / G[live]          # pdf_area d² / cos θ_y
+        local = np.matmul(omega, states.frames[ids].transpose(0, 2, 1))   # rows t, b, n
+        cos_x = local[..., 2]
+        cos_y = light.cos_emitter(omega, tri_index)
+        live = np.flatnonzero((cos_x > 0) & (cos_y > 0))
+        owner = live // K
+        omega_live = omega.reshape(-1, 3)[live]
+        blocked = caster.occluded(lifted[ids][owner], omega_live,
+                                  np.maximum(dist.reshape(-1)[live] - caster.offset(), 0.0))
+        live, owner = live[~blocked], owner[~blocked]
+        k = np.maximum(stratum_of_local_direction(local.reshape(-1, 3)[live], states.strata_u,
+                                                  states.strata_v), 0)
+        cx = cos_x.reshape(-1)[live]
+        p_light = sampler_pdf * dist2.reshape(-1)[live] / cos_y.reshape(-1)[live]  # pdf_A d² / cos θ_y
         weight = (cx / np.pi) / (K * p_light + R * cx / (np.pi * states.stratum_weight[k]))
-        rows = (owner[live] - start) * S + k
-        cols = m + sampler.emitter_of_triangle[sample.triangle_index[live]]
-        return sp.csr_matrix((weight.astype(np.float32), (rows, cols)), shape=(n_rows, n_cols))
+        cols = m + sampler.emitter_of_triangle[tri_index.reshape(-1)[live]]
+        return (owner * S + k).astype(np.int32), cols.astype(np.int32), weight.astype(np.float32)
+
+    sampler_pdf = 1.0 / sampler.total_area if K else 0.0
 
     # Batches run on a small thread pool: embree and numpy release the GIL, so tracing one
     # batch overlaps with binning another.
     starts = list(range(0, m, points_per_batch))
     blocks = [None] * len(starts)
+    point_blocks = [None] * len(starts)
     counts = {}
     t_trace = t_bin = 0.0
     done = 0
-    with ThreadPoolExecutor(max_workers=BUILD_THREADS) as pool:
+    with pool:
         futures = {pool.submit(trace_batch, st): b for b, st in enumerate(starts)}
         try:
             for future in as_completed(futures):
-                block, c, tt, tb = future.result()
+                block, point_block, c, tt, tb = future.result()
                 blocks[futures[future]] = block
+                point_blocks[futures[future]] = point_block
                 for key, value in c.items():
                     counts[key] = counts.get(key, 0) + value
                 t_trace += tt
                 t_bin += tb
-                done += block.shape[0] // S
+                done += point_block.shape[0]
                 if progress is not None:
                     progress.update(done / m, f"{done}/{m} points traced")
         except BaseException:
             for f in futures:
                 f.cancel()
             raise
-    stratum_transitions = _compact(sp.vstack(blocks, format="csr") if len(blocks) > 1 else blocks[0])
-    aggregate = sp.csr_matrix((np.ones(m * S, dtype=np.float32), np.arange(m * S),
-                               np.arange(0, m * S + 1, S)), shape=(m, m * S))
-    P = _compact(aggregate @ stratum_transitions)
+        locator, _, t_locator = tables.result()
+    stratum_transitions = _compact(_stack(blocks))
+    P = _compact(_stack(point_blocks))
     counts["rays"] = m * S * R
     counts["light_samples_per_point"] = K
     return PassiveDynamics(
@@ -486,9 +637,15 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         world_radiance=np.asarray(scene.world_radiance, dtype=np.float64),
         rays_per_stratum=R,
         counts=counts,
-        seconds={"setup": t_setup, "trace": t_trace, "bin": t_bin, "total": time.perf_counter() - t0},
+        seconds={"setup": t_setup, "locator": t_locator, "trace": t_trace, "bin": t_bin,
+                 "total": time.perf_counter() - t0},
         locator=locator,
     )
+
+
+def _stack(blocks):
+    """Row blocks (CSR, same columns) stacked into one CSR matrix."""
+    return sp.vstack(blocks, format="csr") if len(blocks) > 1 else blocks[0]
 
 
 def _compact(matrix):

@@ -61,12 +61,29 @@ def hemisphere_to_square(d):
 
 
 def stratum_of_local_direction(d, strata_u, strata_v):
-    """Stratum index of local directions ``d (..., 3)``; -1 below the horizon (z <= 0)."""
-    u, v = hemisphere_to_square(d)
-    iu = np.minimum((u * strata_u).astype(np.int64), strata_u - 1)
-    iv = np.minimum((v * strata_v).astype(np.int64), strata_v - 1)
-    k = iu * strata_v + iv
-    return np.where(np.asarray(d)[..., 2] > 0, k, -1)
+    """Stratum index of local directions ``d (..., 3)``; -1 below the horizon (z <= 0).
+
+    The inverse of the concentric map with one arctangent of a ratio in [-1, 1] (no ``arctan2``
+    and no four-way select; the build and the tracer call it for every shadow ray and vertex):
+    for a disk point (x, y) with |x| >= |y|, ``a = sign(x) r`` and ``b = a (4/π) atan(y/x)``;
+    otherwise ``b = sign(y) r`` and ``a = b (4/π) atan(x/y)``.
+    """
+    d = np.asarray(d)
+    z = d[..., 2]
+    s = np.sqrt(1.0 + np.maximum(z, 0.0))
+    x = d[..., 0] / s
+    y = d[..., 1] / s
+    r = np.sqrt(x * x + y * y)
+    xa = np.abs(x) >= np.abs(y)
+    num = np.where(xa, y, x)
+    den = np.where(xa, x, y)
+    t = np.arctan(num / np.where(den != 0, den, 1.0)) * (4.0 / np.pi)
+    major = np.where(den >= 0, r, -r)
+    a = np.where(xa, major, major * t)
+    b = np.where(xa, major * t, major)
+    iu = np.clip(((a + 1.0) * 0.5 * strata_u).astype(np.int64), 0, strata_u - 1)
+    iv = np.clip(((b + 1.0) * 0.5 * strata_v).astype(np.int64), 0, strata_v - 1)
+    return np.where(z > 0, iu * strata_v + iv, -1)
 
 
 def stratum_square_samples(strata, jitter_u, jitter_v, strata_u, strata_v):

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .hemisphere import QUARTER_PI
+from .hemisphere import QUARTER_PI, stratum_of_local_direction
 from .raycast import RayCaster
 
 INV_PI = 1.0 / np.pi
@@ -202,7 +202,7 @@ class StateGuide:
         """g_s(ω) (k,) for world directions ``(k, 3)``: u*(k|s) S / 2π, 0 below s's horizon."""
         prob = self.first if first else self.later
         local = _rotate_in(_rows(self.frames32, states), np.asarray(directions, dtype=np.float32))
-        k = stratum_of_local(local, self.strata_u, self.strata_v)
+        k = stratum_of_local_direction(local, self.strata_u, self.strata_v)
         g = np.take(prob, states * self.n_strata + np.maximum(k, 0)) * (self.n_strata / (2.0 * np.pi))
         return np.where(k >= 0, g, 0.0)
 
@@ -243,31 +243,6 @@ def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
         w = same / same.sum(axis=1, keepdims=True)                       # self is always in
         out[ids] = np.einsum("ik,iks->is", w, rows[near])
     return out
-
-
-def stratum_of_local(local, strata_u, strata_v):
-    """Stratum of local directions ``(k, 3)`` (-1 for z <= 0), as
-    ``hemisphere.stratum_of_local_direction`` but with one arctangent of a ratio in [-1, 1]
-    per direction instead of ``arctan2`` and a four-way select (the hot loop calls it per vertex).
-
-    Inverse of the concentric map: for a disk point (x, y) with |x| >= |y|, ``a = sign(x) r``
-    and ``b = a (4/π) atan(y/x)``; otherwise ``b = sign(y) r`` and ``a = b (4/π) atan(x/y)``.
-    """
-    z = local[:, 2]
-    s = np.sqrt(1.0 + np.maximum(z, 0.0))
-    x = local[:, 0] / s
-    y = local[:, 1] / s
-    r = np.sqrt(x * x + y * y)
-    xa = np.abs(x) >= np.abs(y)
-    num = np.where(xa, y, x)
-    den = np.where(xa, x, y)
-    t = np.arctan(num / np.where(den != 0, den, 1.0)) * (4.0 / np.pi)
-    major = np.where(den >= 0, r, -r)
-    a = np.where(xa, major, major * t)
-    b = np.where(xa, major * t, major)
-    iu = np.clip(((a + 1.0) * 0.5 * strata_u).astype(np.int64), 0, strata_u - 1)
-    iv = np.clip(((b + 1.0) * 0.5 * strata_v).astype(np.int64), 0, strata_v - 1)
-    return np.where(z > 0, iu * strata_v + iv, -1)
 
 
 def _normalised_rows(p):

@@ -86,6 +86,23 @@ def test_grid_lookup_is_the_nearest_point_to_within_a_cell(cornell):
     assert np.array_equal(exact_mode.locate_front(tri, u, v, pos), exact)
 
 
+@pytest.mark.parametrize("kind,points", [("CORNELL_BOX", 4000), ("NARROW_OPENING", 2048), ("HEAVY", 500)])
+def test_grid_cells_hold_the_exact_nearest_point_of_their_centre(kind, points):
+    """The tables filled block by block (candidates of the block's centre, certified) hold what
+    a tree query for every cell centre gives; HEAVY's small triangles take the per-cell path."""
+    scene = build_scene_arrays(kind)
+    states = sample_states(scene, points, 4, 4, seed=1)
+    grid = StateLocator(scene, states)
+    t, i, j = grid._cells(np.flatnonzero(grid.gu > 0))
+    c = scene.corners()
+    pos = (c[t, 0] + ((i + 0.5) / grid.gu[t])[:, None] * (c[t, 1] - c[t, 0])
+           + ((j + 0.5) / grid.gv[t])[:, None] * (c[t, 2] - c[t, 0]))
+    exact = grid.locate(pos, grid.face_normals[t], scene.triangle_object[t])
+    np.testing.assert_array_equal(grid.grid_point[grid.grid_offset[t] + i * grid.gv[t] + j], exact)
+    if kind != "HEAVY":
+        assert grid.cells_queried_exactly < 0.05 * len(t)   # the blocks did the work
+
+
 def test_plane_under_sky_sends_every_ray_to_the_world():
     scene = build_scene_arrays("PLANE_UNDER_SKY")
     states = sample_states(scene, 200, 4, 4, seed=0)

@@ -10,7 +10,7 @@ import pytest
 from lmdp_addon import pipeline, scenes
 from lmdp_addon.hemisphere import stratum_of_local_direction, tangent_frame
 from lmdp_addon.settings import Settings
-from lmdp_addon.tracer import IndirectTracer, StateGuide, TraceStats, stratum_of_local
+from lmdp_addon.tracer import IndirectTracer, StateGuide, TraceStats
 from lmdp_addon.baking import build_guide, build_gather
 
 K = 5.0  # standard errors
@@ -186,14 +186,6 @@ def random_guide(strata_u=3, strata_v=5, m=4, seed=0):
                       strata_u=strata_u, strata_v=strata_v), normals
 
 
-def test_stratum_of_local_matches_the_hemisphere_module():
-    rng = np.random.default_rng(1)
-    d = rng.normal(size=(200_000, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    for su, sv in ((4, 4), (3, 5), (8, 8), (1, 1)):
-        np.testing.assert_array_equal(stratum_of_local(d, su, sv), stratum_of_local_direction(d, su, sv))
-
-
 def test_guide_samples_follow_the_policy_and_the_density_integrates_to_one():
     guide, normals = random_guide()
     rng = np.random.default_rng(2)
@@ -203,7 +195,7 @@ def test_guide_samples_follow_the_policy_and_the_density_integrates_to_one():
         states = np.full(n, s)
         d = guide.sample(states, rng.random((n, 2)), first=True)
         local = np.einsum("ij,kj->ki", guide.frames[s], d)
-        k = stratum_of_local(local, guide.strata_u, guide.strata_v)
+        k = stratum_of_local_direction(local, guide.strata_u, guide.strata_v)
         freq = np.bincount(k, minlength=S) / n
         p = guide.first[s]
         assert np.all(np.abs(freq - p) <= K * np.sqrt(p * (1 - p) / n) + 1e-12), (freq, p)
