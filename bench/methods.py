@@ -19,8 +19,9 @@ What is timed (``time.perf_counter`` around the calls, nothing else):
   for when baking.
 * LMDP precompute: ``pipeline.run_sample``, ``run_build``, ``run_solve`` (the engine functions the
   ``lmdp.sample_states`` / ``build_dynamics`` / ``solve`` operators call), each separately.
-* LMDP bake: ``baking.bake`` (what ``lmdp.bake`` calls): input checks, the ray caster's BVH, the
-  guide (state locator and u*), texel rasterisation, tracing and the margin.
+* LMDP bake: ``baking.bake`` (what ``lmdp.bake`` calls): input checks, the ray caster's BVH (GUIDED
+  and FINAL_GATHER reuse the build's: it was timed in the precompute), the guide (state locator
+  and u*), texel rasterisation, tracing and the margin.
 The Blender-side copying of engine results into images is not timed on either side (Cycles'
 readback of its own image is, through ``bake_cycles``).
 """

@@ -32,7 +32,6 @@ from .dynamics import StateLocator
 from .errors import SceneError, StageOrderError
 from .policy import stratum_policy
 from .progress import Progress
-from .raycast import RayCaster
 from .settings import BAKE_MODES
 from .texels import dilate, rasterize_texels, sample_footprint
 from .tracer import GatherField, IndirectTracer, StateGuide, TraceStats, neighbour_average
@@ -488,6 +487,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
                 "strata": int(lmdp.states.n_strata), "cost_mode": lmdp.solution.cost_mode}
         if mode == "FINAL_GATHER":
             gather = build_gather(guide, lmdp)
+        if caster is None and guide.same_scene:  # same geometry: the build's BVH serves
+            caster = getattr(lmdp.dynamics, "caster", None)
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
                             guide_fraction=settings.guide_fraction, caster=caster)
     return tracer, guide, info

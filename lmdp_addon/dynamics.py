@@ -68,6 +68,7 @@ class PassiveDynamics:
     counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
     locator: object = field(default=None, repr=False)  #: the StateLocator the hits were mapped with
+    caster: object = field(default=None, repr=False)   #: the RayCaster (BVH) the rays were traced with
 
     @property
     def n_emitters(self):
@@ -640,6 +641,7 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         seconds={"setup": t_setup, "locator": t_locator, "trace": t_trace, "bin": t_bin,
                  "total": time.perf_counter() - t0},
         locator=locator,
+        caster=caster,
     )
 
 

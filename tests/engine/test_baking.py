@@ -5,6 +5,7 @@ import pytest
 from lmdp_addon import baking, pipeline, scenes
 from lmdp_addon.errors import Cancelled, SceneError, StageOrderError
 from lmdp_addon.progress import Progress
+from lmdp_addon.raycast import RayCaster
 from lmdp_addon.settings import Settings
 from lmdp_addon.texels import rasterize_texels
 
@@ -220,6 +221,23 @@ def test_guided_bake_of_a_changed_scene_uses_exact_lookups(cornell_solved):
     r = baking.bake(moved, ["Floor"], small(bake_mode="GUIDED"), lmdp=cornell_solved)
     assert r.guide_info["same_scene"] is False
     assert r.objects[0].stats.guided_vertices > 0
+
+
+def test_guided_bake_traces_with_the_builds_bvh_only_when_the_geometry_is_the_same(cornell, cornell_solved):
+    """Same geometry: the bake reuses the build's ray caster (no second BVH) and bakes what a
+    fresh caster bakes; a moved scene gets its own."""
+    settings = small(bake_mode="GUIDED")
+    tracer, guide, _ = baking.make_tracer(cornell, settings, cornell_solved)
+    assert tracer.caster is cornell_solved.dynamics.caster
+    shared = baking.bake(cornell, ["Floor"], settings, lmdp=cornell_solved)
+    fresh_tracer, _, _ = baking.make_tracer(cornell, settings, cornell_solved,
+                                            caster=RayCaster(cornell))
+    assert fresh_tracer.caster is not cornell_solved.dynamics.caster
+    fresh = baking.bake_object(fresh_tracer, cornell, "Floor", settings, guide=guide)
+    np.testing.assert_array_equal(shared.objects[0].value, fresh.value)
+    moved = scenes.build_scene_arrays("CORNELL_BOX")
+    moved.vertices[:, 2] += 1e-3
+    assert baking.make_tracer(moved, settings, cornell_solved)[0].caster is not cornell_solved.dynamics.caster
 
 
 def test_objects_without_states_are_reported(cornell):
