@@ -506,6 +506,12 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     precompute_seconds  {'sample', 'build', 'solve'} wall times to report with the bake
     Returns :class:`BakeResult`. Raises the errors of :func:`check_bake_inputs`, or ``Cancelled``.
     """
+    with scene.held():
+        return _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads)
+
+
+def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads):
+    """:func:`bake` with the scene's derived geometry held."""
     progress = progress if progress is not None else Progress()
     texels = {}
     warnings = check_bake_inputs(scene, list(names), settings, lmdp, texels=texels)

@@ -492,12 +492,18 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
     right next to a light the low variance of the stratum rays.
     With K = 0 every row sums to exactly one.
     """
-    t0 = time.perf_counter()
     R = int(rays_per_stratum)
     if R < 1:
         raise BudgetError(f"Rays per Stratum must be at least 1 (got {R})")
+    check_budget(states.n_points, states.n_strata, R, memory_budget_gb, light_samples, scene.n_triangles)
+    with scene.held():
+        return _build(scene, states, R, seed, progress, caster, exact_nearest, light_samples)
+
+
+def _build(scene, states, R, seed, progress, caster, exact_nearest, light_samples):
+    """:func:`build_passive_dynamics` with the scene's derived geometry held."""
+    t0 = time.perf_counter()
     m, S = states.n_points, states.n_strata
-    check_budget(m, S, R, memory_budget_gb, light_samples, scene.n_triangles)
     tri_emitter, emitter_radiance = scene.emitter_groups()
     E = len(emitter_radiance)
     n_cols = m + E + 2
