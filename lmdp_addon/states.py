@@ -79,6 +79,12 @@ def sample_states(scene, point_count, strata_u=4, strata_v=4, seed=0):
         raise SceneError(f"Point count must be at least 1 (got {point_count})")
     if strata_u < 1 or strata_v < 1:
         raise SceneError(f"Strata must be at least 1 x 1 (got {strata_u} x {strata_v})")
+    with scene.held():
+        return _sample(scene, point_count, int(strata_u), int(strata_v), seed)
+
+
+def _sample(scene, point_count, strata_u, strata_v, seed):
+    """:func:`sample_states` with the scene's derived geometry held."""
     scene.check_for_lmdp()
     normals, areas = scene.triangle_geometry()
     on_selected = scene.object_carries_states[scene.triangle_object] & ~scene.is_emissive()
