@@ -160,8 +160,9 @@ class StateLocator:
     whose normal faces away from the hit side is rejected (-> void).
 
     Querying a tree for every ray would cost more than tracing it, so the nearest point is
-    tabulated per triangle on a grid over its barycentric square whose cells are at most
-    1/``CELLS_PER_SPACING`` of the point spacing along each edge: a front-face hit takes the
+    tabulated per triangle on a grid over its barycentric square, spanned by the two edges at the
+    corner opposite the longest edge, whose cells are at most 1/``CELLS_PER_SPACING`` of the
+    point spacing along each of those edges: a front-face hit takes the
     nearest point of its cell's centre. This resolves the nearest point to a quarter of the
     spacing (a hit may go to a neighbour that is at most one cell diagonal farther than the
     nearest; see ``tests/engine/test_dynamics.py`` for the measured rate). The cells of large
@@ -200,9 +201,14 @@ class StateLocator:
         has_tree[list(self.trees)] = True
         tri_ok = scene.state_triangles() & has_tree[scene.triangle_object]
         spacing = np.maximum(self.alpha[scene.triangle_object], 1e-12)
+        # Each grid spans its triangle from the corner opposite the longest edge: the two
+        # shortest edges give the fewest cells (a right triangle's grid is then half full).
         c = scene.corners()
-        e1 = c[:, 1] - c[:, 0]
-        e2 = c[:, 2] - c[:, 0]
+        edge = np.linalg.norm(c[:, [2, 0, 1]] - c[:, [1, 2, 0]], axis=2)   # opposite corners 0, 1, 2
+        self.grid_origin = np.argmax(edge, axis=1).astype(np.int8)
+        order = (self.grid_origin[:, None] + np.arange(3)) % 3
+        self.grid_corners = np.take_along_axis(c, order[:, :, None], axis=1)
+        e1, e2 = self.grid_edges()
         cells = self.CELLS_PER_SPACING / spacing
         gu = np.where(tri_ok, np.clip(np.ceil(cells * np.linalg.norm(e1, axis=1)), 1, self.MAX_CELLS), 0)
         gv = np.where(tri_ok, np.clip(np.ceil(cells * np.linalg.norm(e2, axis=1)), 1, self.MAX_CELLS), 0)
@@ -217,14 +223,36 @@ class StateLocator:
         small = np.flatnonzero((self.gu > 0) & ~big)
         if len(small):
             t, i, j = self._cells(small)
-            u = (i + 0.5) / self.gu[t]
-            v = (j + 0.5) / self.gv[t]
-            pos = c[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
             self.grid_point[self.grid_offset[t] + i * self.gv[t] + j] = self.locate(
-                pos, self.face_normals[t], scene.triangle_object[t])
+                self.cell_centres(t, i, j), self.face_normals[t], scene.triangle_object[t])
             self.cells_queried_exactly += len(t)
         if np.any(big):
             self._fill_blocks(scene, np.flatnonzero(big))
+
+    def grid_edges(self):
+        """The edges ``e1, e2 (T, 3)`` that span each triangle's grid from its origin corner."""
+        g = self.grid_corners
+        return g[:, 1] - g[:, 0], g[:, 2] - g[:, 0]
+
+    def cell_centres(self, t, i, j):
+        """World position of the centre of cell ``(i, j)`` of triangle ``t``'s grid."""
+        e1, e2 = self.grid_edges()
+        u = (i + 0.5) / self.gu[t]
+        v = (j + 0.5) / self.gv[t]
+        return self.grid_corners[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
+
+    def cell_of(self, tri, u, v):
+        """Index into the tables (``grid_point``) of the cell holding the point with ray-hit
+        barycentrics ``(u, v)`` (weights of the triangle's second and third corner) on ``tri``."""
+        r = np.take(self.grid_origin, tri)
+        w0 = 1.0 - u - v
+        gu_coord = np.where(r == 0, u, np.where(r == 1, v, w0))     # weight of corner r + 1
+        gv_coord = np.where(r == 0, v, np.where(r == 1, w0, u))     # weight of corner r + 2
+        gu = np.take(self.gu, tri)
+        gv = np.take(self.gv, tri)
+        i = np.clip((gu_coord * gu).astype(np.int64), 0, gu - 1)
+        j = np.clip((gv_coord * gv).astype(np.int64), 0, gv - 1)
+        return np.take(self.grid_offset, tri) + i * gv + j
 
     def _row_length(self, t, i):
         """Cells of row i of triangle t's grid that meet the triangle: ``j < gv (1 - i/gu)``."""
@@ -256,8 +284,8 @@ class StateLocator:
         """
         B, k_max = self.BLOCK, self.BLOCK_CANDIDATES
         gu, gv = self.gu, self.gv
-        c = scene.corners()
-        e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+        c = self.grid_corners
+        e1, e2 = self.grid_edges()
         # Blocks that meet the triangle: in block row I, those whose first cell is in row I*B.
         brows = -(-gu[tris] // B)
         row_t = np.repeat(tris, brows)
@@ -304,10 +332,8 @@ class StateLocator:
             found[ob] = np.where(facing, ids, -1)
         redo = valid & ~sure
         if np.any(redo):
-            rt, ri, rj = bt[np.nonzero(redo)[0]], i[redo], j[redo]
-            pos = (c[rt, 0] + ((ri + 0.5) / gu[rt])[:, None] * e1[rt]
-                   + ((rj + 0.5) / gv[rt])[:, None] * e2[rt])
-            found[redo] = self.locate(pos, self.face_normals[rt], objects[rt])
+            rt = bt[np.nonzero(redo)[0]]
+            found[redo] = self.locate(self.cell_centres(rt, i[redo], j[redo]), self.face_normals[rt], objects[rt])
             self.cells_queried_exactly += int(np.count_nonzero(redo))
         bt_cells = np.broadcast_to(bt[:, None], i.shape)[valid]
         self.grid_point[self.grid_offset[bt_cells] + i[valid] * gv[bt_cells] + j[valid]] = found[valid]
@@ -317,11 +343,7 @@ class StateLocator:
         if self.exact:
             return self.locate(positions, self.face_normals[tri], self.scene.triangle_object[tri],
                                workers=workers)
-        gu = np.take(self.gu, tri)
-        gv = np.take(self.gv, tri)
-        i = np.minimum((u * gu).astype(np.int64), gu - 1)
-        j = np.minimum((v * gv).astype(np.int64), gv - 1)
-        return np.take(self.grid_point, np.take(self.grid_offset, tri) + i * gv + j).astype(np.int64)
+        return np.take(self.grid_point, self.cell_of(tri, u, v)).astype(np.int64)
 
     def locate(self, positions, side_normals, objects, workers=-1):
         """Exact nearest point for each hit (tree query), -1 where the object has no states or

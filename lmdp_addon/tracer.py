@@ -287,16 +287,13 @@ class GatherField:
         """ẑ at the centre of every grid cell that has a nearest compatible state."""
         loc = self.locator
         scene = loc.scene
-        c = scene.corners()
         sizes = loc.gu * loc.gv
         tri = np.repeat(np.arange(scene.n_triangles), sizes)
         cell = np.arange(len(tri)) - np.repeat(loc.grid_offset, sizes)
         table = np.full((len(tri), 3), np.nan)
         sel = np.flatnonzero(loc.grid_point >= 0)
         t, gv = tri[sel], loc.gv[tri[sel]]
-        u = (cell[sel] // gv + 0.5) / loc.gu[t]
-        v = (cell[sel] % gv + 0.5) / gv
-        pos = c[t, 0] + u[:, None] * (c[t, 1] - c[t, 0]) + v[:, None] * (c[t, 2] - c[t, 0])
+        pos = loc.cell_centres(t, cell[sel] // gv, cell[sel] % gv)
         # Once per bake, before any path: the tree queries use every core.
         table[sel] = self._interpolate(pos, loc.face_normals[t], scene.triangle_object[t], workers=-1)
         return table
@@ -328,11 +325,7 @@ class GatherField:
             loc = self.locator
             fast = front & (loc.gu[tri] > 0)
             if np.any(fast):
-                t = tri[fast]
-                gu, gv = loc.gu[t], loc.gv[t]
-                i = np.minimum((bu[fast] * gu).astype(np.int64), gu - 1)
-                j = np.minimum((bv[fast] * gv).astype(np.int64), gv - 1)
-                out[fast] = self.table[loc.grid_offset[t] + i * gv + j]
+                out[fast] = self.table[loc.cell_of(tri[fast], bu[fast], bv[fast])]
         slow = ~fast
         if np.any(slow):
             obj = objects[slow]

@@ -94,13 +94,35 @@ def test_grid_cells_hold_the_exact_nearest_point_of_their_centre(kind, points):
     states = sample_states(scene, points, 4, 4, seed=1)
     grid = StateLocator(scene, states)
     t, i, j = grid._cells(np.flatnonzero(grid.gu > 0))
-    c = scene.corners()
-    pos = (c[t, 0] + ((i + 0.5) / grid.gu[t])[:, None] * (c[t, 1] - c[t, 0])
-           + ((j + 0.5) / grid.gv[t])[:, None] * (c[t, 2] - c[t, 0]))
+    pos = grid.cell_centres(t, i, j)
     exact = grid.locate(pos, grid.face_normals[t], scene.triangle_object[t])
     np.testing.assert_array_equal(grid.grid_point[grid.grid_offset[t] + i * grid.gv[t] + j], exact)
     if kind != "HEAVY":
         assert grid.cells_queried_exactly < 0.05 * len(t)   # the blocks did the work
+
+
+def test_grid_spans_each_triangle_from_the_corner_opposite_its_longest_edge(cornell):
+    """Hits find their cell whichever corner the grid starts from: the centre of the cell that
+    ``cell_of`` returns lies within half a cell diagonal of the hit."""
+    scene, states, _ = cornell
+    grid = StateLocator(scene, states)
+    c = scene.corners()
+    edge = np.linalg.norm(c[:, [2, 0, 1]] - c[:, [1, 2, 0]], axis=2)
+    carriers = np.flatnonzero(grid.gu > 0)
+    assert np.all(grid.grid_origin[carriers] == np.argmax(edge[carriers], axis=1))
+    assert len(set(grid.grid_origin[carriers].tolist())) > 1      # the test covers several origins
+    rng = np.random.default_rng(4)
+    tri = rng.choice(carriers, 50_000)
+    u, v = rng.random(len(tri)), rng.random(len(tri))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    pos = c[tri, 0] + u[:, None] * (c[tri, 1] - c[tri, 0]) + v[:, None] * (c[tri, 2] - c[tri, 0])
+    cell = grid.cell_of(tri, u, v) - grid.grid_offset[tri]
+    centre = grid.cell_centres(tri, cell // grid.gv[tri], cell % grid.gv[tri])
+    e1, e2 = grid.grid_edges()
+    half_diagonal = 0.5 * np.maximum(np.linalg.norm(e1[tri] / grid.gu[tri, None] + e2[tri] / grid.gv[tri, None], axis=1),
+                                     np.linalg.norm(e1[tri] / grid.gu[tri, None] - e2[tri] / grid.gv[tri, None], axis=1))
+    assert np.all(np.linalg.norm(centre - pos, axis=1) <= half_diagonal * (1 + 1e-9))
 
 
 def test_plane_under_sky_sends_every_ray_to_the_world():
