@@ -17,7 +17,7 @@ lands somewhere, each row of P sums to exactly one.
 No Python loop runs over rays or states: rays are generated, traced and binned in large batches.
 """
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,7 +25,8 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .errors import BudgetError
-from .hemisphere import square_to_hemisphere, stratum_of_local_direction, stratum_square_samples
+from .hemisphere import (square_to_hemisphere, stratum_centers, stratum_of_local_direction,
+                         stratum_square_samples)
 from .lights import EmitterSampler
 from .raycast import RayCaster
 
@@ -168,7 +169,7 @@ class StateLocator:
     nearest; see ``tests/engine/test_dynamics.py`` for the measured rate). The cells of large
     triangles are filled a block at a time (:meth:`_fill_blocks`), with the same result as a
     query per cell centre. ``exact=True`` queries the trees for every hit instead. Back-face
-    hits always query the trees.
+    hits go to the void (:class:`HitClassifier`).
     """
 
     CELLS_PER_SPACING = 4
@@ -177,17 +178,22 @@ class StateLocator:
     BLOCK = 4
     BLOCK_CANDIDATES = 8
 
-    def __init__(self, scene, states, exact=False):
+    def __init__(self, scene, states, exact=False, targets=None):
         self.trees = {}
         self.alpha = np.zeros(len(scene.object_names))
         self.index = {}
+        self.targets = None if targets is None else np.asarray(targets, dtype=bool)
         for o in np.unique(states.point_object):  # loop over objects, not rays
             ids = np.flatnonzero(states.point_object == o)
             area = float(states.point_area[ids].sum())
             alpha = np.sqrt(area / len(ids)) if area > 0 else 1.0
+            self.alpha[o] = alpha
+            if self.targets is not None:
+                ids = ids[self.targets[ids]]
+                if len(ids) == 0:
+                    continue
             feats = np.hstack([states.points[ids], alpha * states.normals[ids]])
             self.trees[int(o)] = cKDTree(feats)
-            self.alpha[o] = alpha
             self.index[int(o)] = ids
         self.normals = states.normals
         self.scene = scene
@@ -195,6 +201,32 @@ class StateLocator:
         self.face_normals = scene.triangle_geometry()[0]
         if not self.exact:
             self._build_grids(scene)
+
+    def exclude(self, points, states):
+        """Stop handing hits to ``points`` (bool mask over all points): they leave the trees,
+        and the grid cells whose nearest point was one of them take their nearest remaining one."""
+        points = np.asarray(points, dtype=bool)
+        if not points.any():
+            return
+        self.targets = ~points if self.targets is None else self.targets & ~points
+        for o in list(self.trees):
+            ids = self.index[o]
+            keep = ids[~points[ids]]
+            if len(keep) == len(ids):
+                continue
+            if len(keep) == 0:
+                del self.trees[o], self.index[o]
+                continue
+            self.trees[o] = cKDTree(np.hstack([states.points[keep], self.alpha[o] * states.normals[keep]]))
+            self.index[o] = keep
+        if self.exact or len(self.grid_point) == 0:
+            return
+        cells = np.flatnonzero((self.grid_point >= 0) & points[np.maximum(self.grid_point, 0)])
+        if len(cells):
+            t = np.searchsorted(self.grid_offset, cells, side="right") - 1
+            rest = cells - self.grid_offset[t]
+            self.grid_point[cells] = self.locate(self.cell_centres(t, rest // self.gv[t], rest % self.gv[t]),
+                                                 self.face_normals[t], self.scene.triangle_object[t])
 
     def _build_grids(self, scene):
         has_tree = np.zeros(len(scene.object_names), dtype=bool)
@@ -361,6 +393,59 @@ class StateLocator:
         return out
 
 
+#: Probe directions of :func:`buried_points`: the centres of a 2 x 4 grid of strata.
+BURIED_PROBES = (2, 4)
+#: Probes that must meet a back face for a point to count as buried.
+BURIED_BACK_HITS = 7
+
+
+def buried_points(caster, states, lifted):
+    """(m,) bool: hidden points, whose probe rays nearly all meet the back of a face.
+
+    Such a point lies inside a closed solid, in a face pressed against another object (the floor
+    under a box standing on it, the end of a slab that a wall covers) or right above the back of
+    a light (the ceiling over a mesh light hanging 5 mm below it). A nearest-point lookup knows
+    nothing of visibility: it would hand such a point the rays that land beside it, and with
+    them whatever light is trapped there (no light at all inside a wall, the lamp's glow in the
+    5 mm gap). So no ray lands on a buried point and its own rays go to the void: the states do
+    not model light confined to spaces thinner than their spacing (the path tracer still does).
+    Eight probe directions spread over the hemisphere (the centres of a 2 x 4 grid of strata);
+    a point is buried when at least ``BURIED_BACK_HITS`` of them meet a back face, or a front
+    face at a buried point (a face pressed against another solid is seen from inside that solid
+    as a front face; one pass of this second rule, over the points the first rule nearly
+    buried). A point that sees a few front faces or the sky is not buried.
+    """
+    local = stratum_centers(*BURIED_PROBES).astype(np.float32)       # (8, 3)
+    n = len(local)
+    m = len(lifted)
+    dirs = np.matmul(local[None, :, :], states.frames.astype(np.float32)).reshape(-1, 3)
+    origins = np.repeat(lifted, n, axis=0)
+    tri, dist = caster.intersect(origins, dirs)
+    scene = caster.scene
+    normals = scene.triangle_geometry()[0]
+    t = np.maximum(tri, 0)
+    back = (tri >= 0) & (np.einsum("ij,ij->i", np.take(normals, t, axis=0), dirs) > 0)
+    count = back.reshape(m, n).sum(axis=1)
+    buried = count >= BURIED_BACK_HITS
+    near = np.flatnonzero(~buried & (count >= BURIED_BACK_HITS - 3))
+    if len(near) and buried.any():
+        rays = (near[:, None] * n + np.arange(n)).ravel()
+        rays = rays[(tri[rays] >= 0) & ~back[rays]
+                    & scene.object_carries_states[scene.triangle_object[t[rays]]]]
+        hits = origins[rays].astype(np.float64) + dirs[rays] * dist[rays, None]
+        onto = np.zeros(len(rays), dtype=bool)
+        for o in np.unique(scene.triangle_object[t[rays]]):   # loop over objects, not rays
+            sel = np.flatnonzero(scene.triangle_object[t[rays]] == o)
+            ids = np.flatnonzero(states.point_object == o)
+            if len(ids) == 0:
+                continue
+            _, k = cKDTree(states.points[ids]).query(hits[sel], k=1)
+            onto[sel] = buried[ids[k]] & (np.einsum("ij,ij->i", states.normals[ids[k]], normals[t[rays[sel]]]) > 0)
+        extra = np.bincount(rays[onto] // n, minlength=m)
+        buried |= count + extra >= BURIED_BACK_HITS
+    return buried
+
+
 class DirectionPatterns:
     """A pool of ray patterns, one per point modulo the pool size: R directions per stratum.
 
@@ -450,10 +535,13 @@ class HitClassifier:
         self.world_lit = bool(np.any(scene.world_radiance > 0))
         carries = scene.object_carries_states[scene.triangle_object] & (tri_emitter < 0)
         # Column of a front hit for every triangle (-1: carrier, look the point up), plus a
-        # sentinel row T for misses.
+        # sentinel row T for misses. The back of a face carries no states: a ray that meets it
+        # comes from inside a solid or sees a one-sided surface from behind, and goes to the void
+        # (a lookup would hand it to the nearest state facing its way, through the solid: the
+        # far side of a wall).
         front = np.where(tri_emitter >= 0, n_points + tri_emitter, np.where(carries, -1, self.void_col))
         back = np.where((tri_emitter >= 0) & scene.triangle_emission_two_sided, n_points + tri_emitter,
-                        np.where(carries, -1, self.void_col))
+                        self.void_col)
         miss = self.world_col if self.world_lit else self.void_col
         self.front_col = np.append(front, miss).astype(np.int64)
         self.back_col = np.append(back, miss).astype(np.int64)
@@ -473,19 +561,12 @@ class HitClassifier:
         emitter = self.is_emitter[t]
         counts["emitters"] = int(np.count_nonzero(emitter & (col != self.void_col)))
         counts["void_emitter_back"] = int(np.count_nonzero(emitter & (col == self.void_col)))
-        lookup = np.flatnonzero(col < 0)
-        on_front = front[lookup]
-        fl = lookup[on_front]
+        fl = np.flatnonzero(col < 0)                    # front hits on carriers
         pos = None
         if self.locator.exact:
             pos = origins[fl] + directions[fl] * dist[fl, None]
         col[fl] = self.locator.locate_front(t[fl], bary_u[fl], bary_v[fl], pos, workers=workers)
-        bl = lookup[~on_front]
-        if len(bl):
-            pos = origins[bl] + directions[bl] * dist[bl, None]
-            col[bl] = self.locator.locate(pos, -self.locator.face_normals[t[bl]],
-                                          self.scene.triangle_object[t[bl]], workers=workers)
-        counts["back_faces"] = len(bl)
+        counts["back_faces"] = int(np.count_nonzero(~front & self.carries[t]))
         unresolved = col < 0
         counts["void_no_state"] = int(np.count_nonzero(unresolved))
         col[unresolved] = self.void_col
@@ -534,25 +615,32 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
     # first batches are traced: only the classification of the hits waits for them.
     pool = ThreadPoolExecutor(max_workers=BUILD_THREADS + 1)
 
+    buried_known = Future()
+
     def make_classifier():
         tl = time.perf_counter()
         locator = StateLocator(scene, states, exact=exact_nearest)
+        locator.exclude(buried_known.result(), states)
         return locator, HitClassifier(scene, locator, m), time.perf_counter() - tl
 
     tables = pool.submit(make_classifier)
     try:
         caster = caster or RayCaster(scene)
+        # Every ray leaves through the upper hemisphere of its point: offset along the normal.
+        lifted64 = states.points + caster.offset() * states.normals
+        lifted = lifted64.astype(np.float32)
+        buried = buried_points(caster, states, lifted)
+        buried_known.set_result(buried)
         rng = np.random.default_rng([int(seed), 0x1DA7])
         patterns = DirectionPatterns(states.strata_u, states.strata_v, R, rng)
         sampler = EmitterSampler(scene)
         K = int(light_samples) if not sampler.empty else 0
         light = LightPatterns(sampler, K, rng) if K else None
-    except BaseException:
+    except BaseException as exc:
+        if not buried_known.done():
+            buried_known.set_exception(exc)
         pool.shutdown(wait=True)
         raise
-    # Every ray leaves through the upper hemisphere of its point: offset along the normal.
-    lifted64 = states.points + caster.offset() * states.normals
-    lifted = lifted64.astype(np.float32)
     frames = states.frames.astype(np.float32)
     t_setup = time.perf_counter() - t0
 
@@ -571,7 +659,17 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
         tb = time.perf_counter()
         # The next-event rows need no locator: they are done first, while it may still be built.
         nee = _emitter_entries(ids) if K else None
-        col, c = tables.result()[1].classify(origins, dirs, tri, dist, bu, bv, workers=1)
+        # Rays of buried points all go to the void: no light reaches them (``buried_points``).
+        inside = np.repeat(buried[ids], S * R)
+        if inside.any():
+            out = np.flatnonzero(~inside)
+            col = np.full(len(tri), m + E + 1, dtype=np.int64)
+            col[out], c = tables.result()[1].classify(origins[out], dirs[out], tri[out], dist[out], bu[out],
+                                                      bv[out], workers=1)
+            c["void_buried"] = len(tri) - len(out)
+            c["void"] += c["void_buried"]
+        else:
+            col, c = tables.result()[1].classify(origins, dirs, tri, dist, bu, bv, workers=1)
         # Rays come ordered by (point, stratum): each row has exactly R ray entries.
         n_rows = len(ids) * S
         weights = np.tile(weights_per_row, len(ids))
@@ -609,7 +707,7 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
         local = np.matmul(omega, states.frames[ids].transpose(0, 2, 1))   # rows t, b, n
         cos_x = local[..., 2]
         cos_y = light.cos_emitter(omega, tri_index)
-        live = np.flatnonzero((cos_x > 0) & (cos_y > 0))
+        live = np.flatnonzero((cos_x > 0) & (cos_y > 0) & ~buried[ids][:, None])
         owner = live // K
         omega_live = omega.reshape(-1, 3)[live]
         blocked = caster.occluded(lifted[ids][owner], omega_live,
@@ -655,6 +753,7 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
     stratum_transitions = _compact(_stack(blocks))
     P = _compact(_stack(point_blocks))
     counts["rays"] = m * S * R
+    counts["buried_points"] = int(np.count_nonzero(buried))
     counts["light_samples_per_point"] = K
     return PassiveDynamics(
         stratum_transitions=stratum_transitions,

@@ -257,9 +257,14 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
                            "level": level, "lattice": lattice, "spacing": object_spacing, "edge": edge,
                            "key": key, "weights": cache.get(obj.name, (None, None))[1]
                            if cache.get(obj.name, (None,))[0] == key else None})
+        # Buried states (inside or pressed against other geometry: dynamics.buried_points) get no
+        # light; they colour no vertex, or the floor beside a box would darken towards it.
+        locator = getattr(session.get("dynamics"), "locator", None)
+        shown = getattr(locator, "targets", None)
+        state_objects = states.point_object if shown is None else np.where(shown, states.point_object, -1)
         # apply() needs these too (the jobs protocol hands it only compute's result).
         self._inputs = {"targets": inputs, "skipped": skipped, "states": states, "solution": solution,
-                        "lmdp": lmdp, "quantity": props.display_quantity,
+                        "lmdp": lmdp, "quantity": props.display_quantity, "state_objects": state_objects,
                         "colormap": props.display_colormap}
         return self._inputs
 
@@ -278,7 +283,7 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
             if weights is None:
                 weights = [vertex_field.interpolation_weights(
                     points, normals, np.full(len(points), target["index"]), states.points, states.normals,
-                    states.point_object, spacing) for points, normals in samples]
+                    inputs["state_objects"], spacing) for points, normals in samples]
             fields = [vertex_field.vertex_field(w, sq, inputs["colormap"]) for w in weights]
             results.append((fields, weights))
             progress.update((i + 1) / len(targets), target["name"])

@@ -188,8 +188,8 @@ def test_guided_has_lower_variance_than_unguided_through_a_narrow_opening(fresh_
 @pytest.mark.slow
 def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
     """FINAL_GATHER is biased by the discretisation of z. Measured here and quoted in the README
-    ("Baking"): the relative mean bias (luminance) against Cycles on the floor at the default 2048
-    points lies in the quoted range, and 4x more points reduce it."""
+    ("Baking"): the relative mean bias (luminance) against Cycles on the floor lies in the quoted
+    range at the default 2048 points and at 8192."""
     build("CORNELL_BOX", lmdp_ext)
     refs = reference(lmdp_ext, demo, "Floor", 32, 8192)
     biases = []
@@ -203,12 +203,14 @@ def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
         biases.append(float((ours.mean(axis=0) - cyc.mean(axis=0)) @ lum / (cyc.mean(axis=0) @ lum)))
     print(f"FINAL_GATHER relative bias (luminance) at 2048 / 8192 points: {biases}")
     low, high = FINAL_GATHER_BIAS_RANGE
-    assert low < biases[0] < high, biases
-    assert abs(biases[1]) < abs(biases[0]), biases
+    assert all(low < b < high for b in biases), biases
 
 
-#: The range quoted in README.md ("Baking"): seeds 0-2 measured +9.0 % .. +11.1 % at 2048 points
-#: (+5.0 % .. +6.3 % at 8192) on the engine's scene arrays of the same box (128 px, 64 samples,
-#: against the benchmark's 1024-sample Cycles reference). Before the direct light was sampled at
-#: the gather point: +23 % .. +27 %.
-FINAL_GATHER_BIAS_RANGE = (0.05, 0.16)
+#: The range quoted in README.md ("Baking"). Measured here +4.0 % / +4.2 % at 2048 / 8192
+#: points; +3.6 % / +4.0 % on the engine's scene arrays of the same box (128 px, 64 samples,
+#: against the benchmark's 1024-sample Cycles reference). It no longer falls with the point
+#: count: the gathered light now has the bake's bounce budget (``baking.build_gather``) and
+#: hidden states no longer leak light (``dynamics.buried_points``), which took +9 .. +11 % at
+#: 2048 points and +5 .. +6 % at 8192 to about 4 %; what is left is not the spacing (a one-off
+#: check: the states' gathered light is 1–5 % above path-traced values at the states).
+FINAL_GATHER_BIAS_RANGE = (0.02, 0.07)

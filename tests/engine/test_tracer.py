@@ -153,6 +153,20 @@ def patch_over_lamp(gap=0.005):
     return scenes.parts_to_scene_arrays(parts)
 
 
+def test_final_gather_reads_the_paths_of_its_bounce_budget():
+    """With ``max_bounces`` = N the gathered light has N - 1 vertices after the gather point:
+    none for N = 1 (black world: ẑ_ind = 0), and the converged solution's for large N; in
+    between it grows with N."""
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    lmdp = pipeline.run_all(scene, Settings(point_count=512, cost_mode="PHYSICAL"))
+    guide = build_guide(scene, lmdp)
+    assert np.all(build_gather(guide, lmdp, 1).irradiance == 0.0)
+    two, eight = build_gather(guide, lmdp, 2).irradiance, build_gather(guide, lmdp, 8).irradiance
+    converged, many = build_gather(guide, lmdp).irradiance, build_gather(guide, lmdp, 500).irradiance
+    assert np.all(two <= eight + 1e-12) and np.all(eight <= many + 1e-12) and eight.sum() < many.sum()
+    np.testing.assert_allclose(many, converged, rtol=1e-6, atol=1e-9)
+
+
 def test_final_gather_takes_direct_light_at_the_gather_point():
     """Over a lamp just below the patch, FINAL_GATHER is unbiased: the patch's light is all
     direct, which the tracer samples at the exact gather point, and the gathered indirect part
