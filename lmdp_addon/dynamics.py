@@ -9,8 +9,11 @@ density proportional to BRDF·cos within the stratum, so each carries exactly ``
   Lambertian reduction only the point matters, see ``design.md``),
 * an emitter terminal (uniform emission: one terminal per emitter group),
 * the world terminal (escaping ray, world not black),
-* the void terminal (z = 0): geometry that carries no states, back faces of one-sided
-  emitters, hits with no compatible state, and escapes into a black world.
+* the void terminal (z = 0): geometry that carries no states, back faces (of one-sided emitters
+  and of every surface), hits with no compatible state, and escapes into a black world.
+
+Buried points (:func:`buried_points`: inside solids, pressed against other objects, over the back
+of a lamp) are states no ray lands on, and their own rays all go to the void.
 
 The estimate of each p(x'|x) is unbiased, and since the stratum masses sum to one and every ray
 lands somewhere, each row of P sums to exactly one.
@@ -112,12 +115,14 @@ class PassiveDynamics:
         c = self.counts
         total = max(sum(c.get(k, 0) for k in ("points", "emitters", "world", "void")), 1)
         nee = (f" + {c['nee_rays']} shadow rays to the emitters" if c.get("nee_rays") else "")
+        buried = (f"; {c['buried_points']} buried points (inside or under other geometry: no light, "
+                  "no ray lands on them)" if c.get("buried_points") else "")
         return (f"{self.n_points} x {self.n_columns} passive dynamics, nnz {self.P.nnz} "
                 f"({self.stratum_transitions.nnz} per stratum), {self.rays} rays{nee}: "
                 f"{100 * c.get('points', 0) / total:.1f}% to states, "
                 f"{100 * c.get('emitters', 0) / total:.1f}% to emitters, "
                 f"{100 * c.get('world', 0) / total:.1f}% to the world, "
-                f"{100 * c.get('void', 0) / total:.1f}% to the void")
+                f"{100 * c.get('void', 0) / total:.1f}% to the void{buried}")
 
 
 def estimate_build_bytes(n_points, n_strata, rays_per_stratum, light_samples=0, n_triangles=0):
