@@ -72,6 +72,7 @@ class PassiveDynamics:
     counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
     locator: object = field(default=None, repr=False)  #: the StateLocator the hits were mapped with
+    warnings: list = field(default_factory=list)       #: messages for the user (objects mostly buried)
     caster: object = field(default=None, repr=False)   #: the RayCaster (BVH) the rays were traced with
 
     @property
@@ -759,6 +760,7 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
     P = _compact(_stack(point_blocks))
     counts["rays"] = m * S * R
     counts["buried_points"] = int(np.count_nonzero(buried))
+    warnings = _buried_warnings(scene, states, buried)
     counts["light_samples_per_point"] = K
     return PassiveDynamics(
         stratum_transitions=stratum_transitions,
@@ -774,7 +776,20 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
                  "total": time.perf_counter() - t0},
         locator=locator,
         caster=caster,
+        warnings=warnings,
     )
+
+
+def _buried_warnings(scene, states, buried):
+    """A message for each object most of whose points are buried: a solid inside another, or an
+    object in a room whose normals face outwards (it then sees only back faces, which are void)."""
+    names = scene.object_names
+    total = np.bincount(states.point_object, minlength=len(names))
+    hidden = np.bincount(states.point_object[buried], minlength=len(names))
+    return [f"{hidden[o]} of the {total[o]} points on {names[o]} see only back faces and get no light: "
+            f"if {names[o]} stands in a room whose normals face outwards, flip the room's normals "
+            "(Edit Mode > Mesh > Normals > Flip)"
+            for o in np.flatnonzero((total > 0) & (hidden > 0.5 * total))]
 
 
 def _stack(blocks):

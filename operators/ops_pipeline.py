@@ -91,6 +91,7 @@ class LMDP_OT_build_dynamics(EngineJob, bpy.types.Operator):
     def apply(self, context, dynamics):
         session = session_for(context.scene)
         session.store("dynamics", dynamics, seconds=self.compute_seconds, settings=self.settings)
+        report_warnings(self, dynamics.warnings)
         rate = dynamics.rays / max(self.compute_seconds, 1e-9)
         return (f"Built {dynamics.summary()} in {self.compute_seconds:.2f} s "
                 f"({rate / 1e6:.2f} Mrays/s, {format_bytes(dynamics.memory_bytes())})")
@@ -181,7 +182,7 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
         session.store("dynamics", r.dynamics, seconds=r.seconds["build"], settings=self.settings)
         session.store("costs", r.lmdp, settings=self.settings)
         session.store("solution", r.solution, seconds=r.seconds["solve"], settings=self.settings)
-        report_warnings(self, r.scene.warnings)
+        report_warnings(self, list(r.scene.warnings) + list(r.dynamics.warnings))
         if not r.solution.converged:
             self.report({'WARNING'}, f"The {r.solution.solver} solver did not converge: {r.solution.message}")
         total = sum(r.seconds.values())

@@ -160,6 +160,27 @@ def test_points_under_the_boxes_are_buried():
     assert np.allclose(dyn.P[np.flatnonzero(buried), dyn.void_column].toarray(), 1.0, atol=1e-6)
 
 
+def test_an_object_in_a_room_with_outward_normals_is_buried_and_named():
+    """A room made of a closed box with outward normals (a scaled default cube) shows only back
+    faces from inside: the box standing in it is buried, and the build says which object and
+    what to do; in the same room with inward normals it is not."""
+    from lmdp_addon.scenes import WHITE, _box_part, _quad_part
+    lamp = _quad_part("Lamp", [(-0.2, -0.2, 1.9), (-0.2, 0.2, 1.9), (0.2, 0.2, 1.9), (0.2, -0.2, 1.9)],
+                      emission=(10.0, 10.0, 10.0))
+    crate = _box_part("Crate", (0.0, 0.0, 0.5), (0.6, 0.6, 0.6), WHITE)
+    for flip, expect in ((False, True), (True, False)):
+        room = _box_part("Room", (0.0, 0.0, 1.0), (4.0, 4.0, 2.0), WHITE)
+        if flip:
+            room = Part(room.name, room.vertices, room.faces[:, ::-1], room.face_uv, room.albedo)
+        scene = parts_to_scene_arrays([room, crate, lamp], selected=["Crate"])
+        states = sample_states(scene, 300, 4, 4, seed=0)
+        dyn = build_passive_dynamics(scene, states, 2, seed=0, light_samples=4)
+        named = [w for w in dyn.warnings if "Crate" in w and "flip" in w]
+        assert bool(named) == expect, dyn.warnings
+        if expect:
+            assert dyn.counts["buried_points"] > 150
+
+
 def test_plane_under_sky_sends_every_ray_to_the_world():
     scene = build_scene_arrays("PLANE_UNDER_SKY")
     states = sample_states(scene, 200, 4, 4, seed=0)
