@@ -342,8 +342,8 @@ def build_gather(guide, lmdp, max_bounces=None):
     run N - 1 times from z = 0 (stopped early once it no longer changes), not the converged
     solution: the gather point is the path's first vertex, so the light it reads has N - 1 more
     vertices at most, as the tracer's and Cycles' paths of N bounces. The converged z would add
-    the light of every longer path (about 5 % on the Cornell floor at N = 8, 10 % in the room
-    that the narrow opening lights).
+    the light of every longer path (at N = 8: +1 % on the Cornell floor, +10 % in the room that
+    the narrow opening lights, measured as the change in FINAL_GATHER's bias).
     """
     problem = lmdp.lmdp
     E = len(lmdp.dynamics.emitter_radiance)
