@@ -184,22 +184,18 @@ class StateLocator:
     BLOCK = 4
     BLOCK_CANDIDATES = 8
 
-    def __init__(self, scene, states, exact=False, targets=None):
+    def __init__(self, scene, states, exact=False):
         self.trees = {}
         self.alpha = np.zeros(len(scene.object_names))
         self.index = {}
-        self.targets = None if targets is None else np.asarray(targets, dtype=bool)
+        self.targets = None   #: bool mask of the points hits may land on (None: all; :meth:`exclude`)
         for o in np.unique(states.point_object):  # loop over objects, not rays
             ids = np.flatnonzero(states.point_object == o)
             area = float(states.point_area[ids].sum())
             alpha = np.sqrt(area / len(ids)) if area > 0 else 1.0
-            self.alpha[o] = alpha
-            if self.targets is not None:
-                ids = ids[self.targets[ids]]
-                if len(ids) == 0:
-                    continue
             feats = np.hstack([states.points[ids], alpha * states.normals[ids]])
             self.trees[int(o)] = cKDTree(feats)
+            self.alpha[o] = alpha
             self.index[int(o)] = ids
         self.normals = states.normals
         self.scene = scene
@@ -660,22 +656,27 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
         ids = np.arange(start, min(start + points_per_batch, m))
         dirs = patterns.directions(frames[ids], ids)
         origins = np.repeat(lifted[ids], S * R, axis=0)
+        # Rays of buried points all go to the void: no light reaches them (``buried_points``),
+        # so they are not traced.
+        inside = np.repeat(buried[ids], S * R)
+        out = np.flatnonzero(~inside) if inside.any() else slice(None)
         ta = time.perf_counter()
-        tri, dist, bu, bv = caster.intersect(origins, dirs, barycentrics=True)
+        hits = caster.intersect(origins[out], dirs[out], barycentrics=True)
         tb = time.perf_counter()
         # The next-event rows need no locator: they are done first, while it may still be built.
         nee = _emitter_entries(ids) if K else None
-        # Rays of buried points all go to the void: no light reaches them (``buried_points``).
-        inside = np.repeat(buried[ids], S * R)
+        classifier = tables.result()[1]
         if inside.any():
-            out = np.flatnonzero(~inside)
-            col = np.full(len(tri), m + E + 1, dtype=np.int64)
-            col[out], c = tables.result()[1].classify(origins[out], dirs[out], tri[out], dist[out], bu[out],
-                                                      bv[out], workers=1)
-            c["void_buried"] = len(tri) - len(out)
+            tri = np.full(len(dirs), -1, dtype=np.int64)
+            dist = np.full(len(dirs), np.inf, dtype=np.float32)
+            tri[out], dist[out] = hits[:2]
+            col = np.full(len(dirs), m + E + 1, dtype=np.int64)
+            col[out], c = classifier.classify(origins[out], dirs[out], *hits, workers=1)
+            c["void_buried"] = len(dirs) - len(out)
             c["void"] += c["void_buried"]
         else:
-            col, c = tables.result()[1].classify(origins, dirs, tri, dist, bu, bv, workers=1)
+            tri, dist = hits[:2]
+            col, c = classifier.classify(origins, dirs, *hits, workers=1)
         # Rays come ordered by (point, stratum): each row has exactly R ray entries.
         n_rows = len(ids) * S
         weights = np.tile(weights_per_row, len(ids))
