@@ -33,6 +33,7 @@ from .errors import SceneError, StageOrderError
 from .policy import stratum_policy
 from .progress import Progress
 from .settings import BAKE_MODES
+from .solvers import desirability_after
 from .texels import dilate, rasterize_texels, sample_footprint
 from .tracer import GatherField, IndirectTracer, StateGuide, TraceStats, neighbour_average
 
@@ -339,7 +340,7 @@ def build_gather(guide, lmdp, max_bounces=None):
     it hardly at all), so read from the states it would leak across the spacing.
 
     With ``max_bounces`` = N, z_N is the first-exit recursion ``z <- q ⊙ (P_NN z + P_NT z_T)``
-    run N - 1 times from z = 0 (stopped early once it no longer changes), not the converged
+    run N - 1 times from z = 0 (``solvers.desirability_after``), not the converged
     solution: the gather point is the path's first vertex, so the light it reads has N - 1 more
     vertices at most, as the tracer's and Cycles' paths of N bounces. The converged z would add
     the light of every longer path (at N = 8: +1 % on the Cornell floor, +10 % in the room that
@@ -350,15 +351,7 @@ def build_gather(guide, lmdp, max_bounces=None):
     z = np.asarray(lmdp.solution.z, dtype=np.float64)
     P_NN = problem.P_NN
     if max_bounces is not None:
-        drive = problem.terminal_drive()
-        q = np.asarray(problem.q, dtype=np.float64)
-        z = np.zeros_like(drive)
-        for _ in range(int(max_bounces) - 1):
-            new = q * (np.asarray(P_NN @ z) + drive)
-            done = np.abs(new - z).max() <= 1e-12 * max(np.abs(new).max(), 1e-300)
-            z = new
-            if done:
-                break
+        z = desirability_after(problem, int(max_bounces) - 1)
     P_NT = problem.P_NT[:, E:]                           # world and void, not the emitters
     indirect = (np.asarray(P_NN @ z) + np.asarray(P_NT @ problem.z_terminal[E:]))
     return GatherField(locator=guide.locator, irradiance=np.maximum(indirect, 0.0), same_scene=guide.same_scene,
