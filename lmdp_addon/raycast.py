@@ -32,9 +32,12 @@ class RayCaster:
             raise SceneError("The scene has no triangles with non-zero area to trace rays against")
         self.triangle_ids = valid.astype(np.int64)
         self._identity = len(valid) == scene.n_triangles   # embree's primID is the triangle
-        corners = scene.corners()[valid].astype(np.float32)
+        # Shared vertices and an index buffer: embreex copies its input element by element, and
+        # a vertex list is about half the size of three corners per triangle (HEAVY: 0.17 s
+        # instead of 0.29 s). The valid triangles only use finite vertices; the others are zeroed.
+        vertices = np.where(np.isfinite(scene.vertices), scene.vertices, 0.0).astype(np.float32)
         self._embree = rtcore_scene.EmbreeScene()
-        TriangleMesh(self._embree, np.ascontiguousarray(corners))
+        TriangleMesh(self._embree, vertices, np.ascontiguousarray(scene.triangles[valid], dtype=np.int32))
         self.scale = scene.bounding_diagonal()
         self.rays_cast = 0
 
