@@ -268,7 +268,11 @@ class GatherField:
     near): inverse-squared-distance weights over the ``neighbours`` nearest compatible states
     of the same object (6-D distance of ``StateLocator``: position and α·normal). For front hits
     on state-carrying triangles of the solved scene, the value is tabulated on the locator's
-    per-triangle grid (cell centres, a quarter of the point spacing).
+    per-triangle grid (cell centres, a quarter of the point spacing). Back-face hits are NaN:
+    states describe the front of their faces only (the build sends back-face hits to the
+    void), and the nearest state facing the hit's side would be on the far side of the solid,
+    so a path that starts inside a box standing on the floor (a texel under it) would gather
+    the light outside the box. The tracer continues such paths instead.
     """
 
     locator: object
@@ -326,7 +330,7 @@ class GatherField:
             fast = front & (loc.gu[tri] > 0)
             if np.any(fast):
                 out[fast] = self.table[loc.cell_of(tri[fast], bu[fast], bv[fast])]
-        slow = ~fast
+        slow = ~fast & front
         if np.any(slow):
             obj = objects[slow]
             if self.object_map is not None:
