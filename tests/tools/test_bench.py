@@ -190,3 +190,21 @@ def test_variance_anatomy_samples_the_receiver_and_reports_each_case(capsys):
     variance_anatomy.main(["CORNELL_BOX", "Floor", "--points", "32", "--paths", "8"])
     out = capsys.readouterr().out
     assert out.count("bounce(s)") == 3 and "one-sided light" in out
+
+
+def test_bias_map_finds_a_leak_where_the_reference_is_dark():
+    """Blocks of the map: the relative bias where the reference has light, LEAK where it has
+    none and the bake does; row 0 is the top of the lightmap (Blender stores rows bottom-up)."""
+    from bench.bias_map import block_bias, format_map
+    ref = np.ones((16, 16))
+    ref[:4, :4] = 0.0                   # bottom-left block dark (a texel under a box)
+    ref[12:, 12:] = np.nan              # top-right block not covered
+    values = 1.02 * ref
+    values[:4, :4] = 0.05               # light where there is none
+    bias, leak = block_bias(values, ref, 4)
+    assert leak[3, 0] and leak.sum() == 1
+    assert np.isnan(bias[3, 0]) and np.isnan(bias[0, 3])
+    finite = np.isfinite(bias)
+    assert finite.sum() == 14 and np.allclose(bias[finite], 0.02)
+    text = format_map(bias, leak).splitlines()
+    assert text[3].split()[0] == "LEAK" and text[0].split()[3] == "." and text[1].split()[0] == "+2"
