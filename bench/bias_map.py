@@ -2,7 +2,7 @@
 texels, per object and per block of the lightmap.
 
     .venv/bin/python bench/bias_map.py [SCENE] [OBJECT ...] [--modes FINAL_GATHER,UNGUIDED]
-        [--points N] [--samples N] [--resolution R] [--blocks B] [--ref-samples N]
+        [--points N] [--samples N] [--resolution R] [--blocks B] [--ref-samples N] [--seed S]
 
 A mean bias over a whole lightmap can hide a leak in one corner. This bakes each object with
 each mode and prints, for a B x B grid of blocks of its lightmap (top row = top of the UV
@@ -92,6 +92,7 @@ def main(argv=None):
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--blocks", type=int, default=8)
     parser.add_argument("--ref-samples", type=int, default=1024)
+    parser.add_argument("--seed", type=int, default=0, help="the engine's seed (states, paths)")
     args = parser.parse_args(argv)
     if args.resolution % args.blocks:
         parser.error("--resolution must be a multiple of --blocks")
@@ -102,7 +103,7 @@ def main(argv=None):
     scene = scenes.build_scene_arrays(args.scene)
     for mode in args.modes.split(","):
         settings = replace(Settings(), point_count=args.points, bake_mode=mode, bake_samples=args.samples,
-                           bake_margin=0, bake_resolution=args.resolution)
+                           bake_margin=0, bake_resolution=args.resolution, seed=args.seed)
         lmdp = pipeline.run_all(scene, settings) if mode != "UNGUIDED" else None
         for ob in baking.bake(scene, args.objects, settings, lmdp).objects:
             ref = references[ob.name]

@@ -148,19 +148,6 @@ def state_residuals(lmdp, solution):
     return np.where(reachable, rel.max(axis=1), 0.0)
 
 
-def desirability_after(lmdp, steps, tolerance=1e-12):
-    """(m, C) z of the first-exit recursion ``z <- q ⊙ (P_NN z + P_NT z_T)`` run ``steps`` times
-    from z = 0 (stopped early once the relative change is below ``tolerance``): the light that
-    leaves each state after at most ``steps`` vertices, the state's own included. The power
-    method of :func:`solve_desirability` on the same rescaled system, started from zero."""
-    S, q, b, delta, _, reachable = rescaled_system(lmdp)
-    y = np.zeros_like(b)
-    if steps > 0 and np.any(reachable):
-        y, *_ = _power(S, q, b, y, delta, tolerance, int(steps), None)
-    with np.errstate(over="ignore", invalid="ignore"):
-        return np.where(reachable[:, None], y * np.exp(-np.where(reachable, delta, 0.0))[:, None], 0.0)
-
-
 def _apply(S, q, y):
     return q * (S @ y)
 

@@ -51,8 +51,8 @@ Direction sampling at a vertex with shading normal n:
   solution replaces the rest of the path: ``L_r(y_1) ≈ ρ(y_1) (ẑ_ind(y_1) + D_e(y_1))`` with
   ẑ_ind the indirect irradiance/π of the nearby compatible states, interpolated
   (``GatherField``), and D_e the direct light at y_1 itself by light sampling (one shadow ray).
-  Hits without a nearby compatible state continue as a GUIDED path. Biased by the discretisation
-  of ẑ_ind.
+  Hits without a nearby compatible state, and back-face hits, continue as a GUIDED path. Biased
+  by the discretisation of ẑ_ind.
 
 Arrays are float32 in the hot loop (positions of scenes of metres keep ~1e-7 relative precision,
 ray origins are offset by ``RayCaster.offset()``, 1e-5 of the scene size).
@@ -262,7 +262,8 @@ def _row_cdf(p):
 @dataclass
 class GatherField:
     """Irradiance/π ẑ of the PHYSICAL solution, interpolated between states: the *indirect*
-    part ẑ_ind (``baking.build_gather``; the tracer adds the direct part at the gather point).
+    part ẑ_ind, the light that arrives after at least one reflection (``baking.build_gather``;
+    the tracer adds the direct part at the gather point).
 
     ``value_at(...)`` returns (k, 3) ẑ at surface points (NaN where no compatible state is
     near): inverse-squared-distance weights over the ``neighbours`` nearest compatible states
@@ -555,6 +556,14 @@ class IndirectTracer:
         weight = q / (p_light + q) if mis else q / p_light
         out[np.take(order, vis)] = _rows(self.emitter_radiance, ev) * weight[:, None]
         return out
+
+    def direct_light(self, points, normals, rng, stats=None):
+        """D_e(y) (k, 3) = (1/π) ∫ L_e cos θ dω at surface points y with normals ``normals``
+        (the side that is lit), by light sampling alone: one shadow ray each (:meth:`_direct`
+        with ``mis=False``)."""
+        stats = stats if stats is not None else TraceStats()
+        return self._direct(np.ascontiguousarray(points, dtype=np.float32),
+                            np.ascontiguousarray(normals, dtype=np.float32), rng, stats, mis=False)
 
     def _near(self, origins, e, n_l=None):
         """Light-sampling strategy per (ray origin ``origins (k, 3)`` float32, emitter triangle

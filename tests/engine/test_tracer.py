@@ -7,7 +7,7 @@ analytic value (plus the analytic model's own error where it has one, stated at 
 import numpy as np
 import pytest
 
-from lmdp_addon import pipeline, scenes
+from lmdp_addon import baking, pipeline, scenes
 from lmdp_addon.hemisphere import stratum_of_local_direction, tangent_frame
 from lmdp_addon.settings import Settings
 from lmdp_addon.tracer import IndirectTracer, StateGuide, TraceStats
@@ -170,7 +170,7 @@ def test_final_gather_reads_the_paths_of_its_bounce_budget():
 def test_final_gather_takes_direct_light_at_the_gather_point():
     """Over a lamp just below the patch, FINAL_GATHER is unbiased: the patch's light is all
     direct, which the tracer samples at the exact gather point, and the gathered indirect part
-    ẑ_ind = P_NN z_N + P_NW z_W is zero on the patch (black receiver and world). The states' z/ρ, read at
+    ẑ (``baking.build_gather``) is zero on the patch (black receiver and world). The states' z/ρ, read at
     the nearest states instead, carries the gap's light across the lamp's edge: measured 4.6 x
     with 512 points, so the test can tell the two apart."""
     scene = patch_over_lamp()
@@ -186,6 +186,31 @@ def test_final_gather_takes_direct_light_at_the_gather_point():
     pt, _ = trace_at(IndirectTracer(scene, "UNGUIDED", max_bounces=1), (0.0, 0.0, 0.0), (0, 0, 1), 200_000, seed=1)
     se = np.sqrt(fg.var(axis=0, ddof=1) / len(fg) + pt.var(axis=0, ddof=1) / len(pt))
     assert np.all(np.abs(fg.mean(axis=0) - pt.mean(axis=0)) <= K * se), (fg.mean(axis=0), pt.mean(axis=0), se)
+
+def test_direct_after_one_bounce_is_the_one_bounce_light_of_the_states():
+    """b(x), FINAL_GATHER's source term, is the light that reaches a state point after exactly
+    one reflection: the tracer's estimate with one bounce at the same point, within the two
+    estimates' standard errors (b's per-ray variance is that of the tracer's light-sampling
+    half, so its standard error is taken equal to the tracer's). The points include ceiling
+    states beside the Cornell box's lamp, whose 5 mm gap made the old gather leak."""
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    lmdp = pipeline.run_all(scene, Settings(point_count=512, cost_mode="PHYSICAL"))
+    st = lmdp.states
+    ceiling = np.flatnonzero(st.point_object == scene.object_names.index("Ceiling"))
+    lamp_edge = ceiling[np.argsort(np.abs(np.abs(st.points[ceiling, 0]) - 0.125))[:2]]
+    others = [np.flatnonzero(st.point_object == scene.object_names.index(n))[0]
+              for n in ("Floor", "LeftWall", "TallBox")]
+    points = np.concatenate([lamp_edge, others])
+    n = 40_000
+    b = baking.direct_after_one_bounce(lmdp, n, seed=3, points=points)
+    assert np.all(np.delete(b, points, axis=0) == 0.0)
+    tracer = IndirectTracer(scene, "UNGUIDED", max_bounces=1, caster=lmdp.dynamics.caster)
+    for k, i in enumerate(points):
+        pt, _ = trace_at(tracer, st.points[i], st.normals[i], n, seed=10 + k)
+        se = np.sqrt(2.0) * pt.std(axis=0, ddof=1) / np.sqrt(n)
+        assert np.all(np.abs(b[i] - pt.mean(axis=0)) <= K * se + 1e-12), (i, b[i], pt.mean(axis=0), se)
+    assert b[points].sum() > 0
+
 
 def test_final_gather_does_not_gather_through_a_solid():
     """A point of the Cornell floor under the short box starts its paths inside the box (the ray
