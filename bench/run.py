@@ -61,6 +61,7 @@ def profiles():
                  settings={"cost_mode": "THESIS", "lambda_scale": 0.01}),
             dict(mode="GUIDED", name="GUIDED THESIS λ x1", ladder=(4, 16, 64), cases=light,
                  settings={"cost_mode": "THESIS", "lambda_scale": 1.0}),
+            dict(mode="FINAL_GATHER", name="FINAL_GATHER 2048 pts (defaults)", ladder=(1, 4, 16, 64)),
             dict(mode="FINAL_GATHER", name="FINAL_GATHER 8192 pts", ladder=(1, 4, 16, 64), cases=light,
                  settings={"point_count": 8192}),
             dict(mode="FINAL_GATHER", name="FINAL_GATHER 32768 pts", ladder=(1, 4, 16, 64),
