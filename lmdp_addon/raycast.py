@@ -1,7 +1,7 @@
 """Ray casting with embreex (Embree 4): batched closest-hit and occlusion queries.
 
-All queries take large numpy batches; the ray origin is offset along the geometric normal by the
-caller (see :func:`offset_origins`) to avoid self-intersection.
+All queries take large numpy batches; the caller offsets the ray origin along the normal by
+:meth:`RayCaster.offset` to avoid self-intersection.
 """
 import numpy as np
 
@@ -89,9 +89,3 @@ class RayCaster:
         """Origin offset along the normal, relative to the scene size (metres)."""
         return 1e-5 * self.scale
 
-
-def offset_origins(points, normals, directions, eps):
-    """Move ray origins off the surface, to the side the rays leave from (avoids self-hits)."""
-    side = np.sign(np.einsum("ij,ij->i", normals, directions))[:, None]
-    side[side == 0] = 1.0
-    return points + eps * side * normals
