@@ -34,6 +34,7 @@ from .policy import stratum_policy
 from .progress import Progress
 from .raycast import RayCaster
 from .settings import BAKE_MODES
+from .states import GOLDEN
 from .texels import dilate, rasterize_texels, sample_footprint
 from .tracer import GatherField, IndirectTracer, StateGuide, TraceStats, neighbour_average
 
@@ -55,8 +56,6 @@ GUIDE_NEIGHBOURS = 16
 TEXEL_CACHE_LIMIT = 1 << 20
 #: Suffix of the images the add-on writes.
 IMAGE_SUFFIX = "_lmdp_indirect"
-
-GOLDEN = 0.6180339887498949
 
 
 @dataclass

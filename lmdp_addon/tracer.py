@@ -662,7 +662,7 @@ class IndirectTracer:
                 # Radiance leaving y_1: ρ (ẑ_ind + D_e), the direct part by light sampling at
                 # y_1 itself (see baking.build_gather); the path ends here.
                 g = np.flatnonzero(done)
-                direct = self._direct(_rows(pos, g), _rows(nrm, g), rng, stats, mis=False)
+                direct = self.direct_light(_rows(pos, g), _rows(nrm, g), rng, stats)
                 L[idx[g]] += _rows(beta, g) * (value[g].astype(np.float32) + direct)
                 stats.gathered += int(done.sum())
                 stats.gather_fallback += int((~done).sum())
