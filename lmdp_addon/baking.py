@@ -404,8 +404,8 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
     millimetres near an emitter: the states at the edge of the 5 mm gap between a two-sided light
     and the ceiling see the light's back at point-blank range, and the rays that land on the
     ceiling beside the light (which hardly sees it) would read their z. With 2048 points that
-    moved the Cornell floor's FINAL_GATHER bias between -1.7 and +5.1 % with the seed; with b,
-    between -0.5 and +0.8 % (seeds 0, 1, 2, 100, 101; 128 px, 64 samples).
+    moved the Cornell floor's FINAL_GATHER bias between -1.8 and +5.0 % with the seed; with b,
+    between -0.6 and +0.7 % (``bench/bias_map.py``, seeds 0, 1, 2, 100, 101; 128 px, 64 samples).
 
     With ``max_bounces`` = N the recursion runs from ẑ = w for N - 1 steps: the gather point is
     the path's first vertex, so the light it reads has at most N - 1 more vertices, as the
