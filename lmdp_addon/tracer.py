@@ -15,13 +15,15 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 
 * vertex 0 (the texel point) samples ω0 with pdf ``p0``; weight ``w0 = cos θ0 / (π p0)``;
 * at every later vertex y_k (k = 1 .. max_bounces) the throughput is ``β_k = β_{k-1} w_{k-1} ρ(y_k)``
-  and **next-event estimation** adds ``β_k · L_e cos θ_y cos θ_l / (π r² p_A)`` for one point on
-  the emitters, chosen with probability proportional to area x max-channel radiance (uniform on
-  the chosen triangle, ``p_A`` its area density), with a shadow ray; one-sided emitters (area
+  and **next-event estimation** samples one point on the emitters (triangle chosen with
+  probability proportional to area x max-channel radiance; uniform on it far away, uniform in
+  its solid angle close by, as Cycles chooses) with a shadow ray; one-sided emitters (area
   lights) count only on their front side, mesh emission on both (``SceneArrays``);
-* emitters hit by a sampled ray are *never* counted (NEE is their only estimator: no double
-  counting, no MIS needed); a uniform world is counted only through sampled rays that escape
-  from y_k (k >= 1), weight ``β_k w_k L_world``;
+* emitters hit by a ray sampled at y_k (k >= 1) are counted too, and the two estimates of the
+  emitted light are combined by multiple importance sampling (the balance heuristic against
+  the cosine density, :meth:`IndirectTracer._direct`); the emitter hit by the texel's own first
+  ray is direct light and is left out; a uniform world is counted only through sampled rays
+  that escape from y_k (k >= 1), weight ``β_k w_k L_world``;
 * ``max_bounces`` = N keeps vertices y_1 .. y_N (NEE at each and the escape of y_N's ray), which
   is what Cycles' ``max_bounces = N`` (with ``diffuse_bounces >= N``) bakes: Cycles' kernel uses
   ``N + 1`` internally and stops shading at the vertex whose incoming bounce count reaches it;
@@ -490,6 +492,7 @@ class IndirectTracer:
         if self.n_emitter_triangles == 0 or k == 0:
             return out
         r = rng.random((k, 3), dtype=np.float32)
+        r1, r2 = np.ascontiguousarray(r[:, 1]), np.ascontiguousarray(r[:, 2])
         if self.n_emitter_triangles == 1:
             e = np.zeros(k, dtype=np.int64)
         else:
@@ -499,48 +502,43 @@ class IndirectTracer:
         # ray at a grazing angle would meet the emitter's plane before ``dist`` (close emitters).
         # Per component below: contiguous (k,) arrays are much faster in numpy than (k, 3) rows.
         origin = points + self.eps * normals
-        o = (origin[:, 0], origin[:, 1], origin[:, 2])
+        o = tuple(np.ascontiguousarray(origin[:, i]) for i in range(3))
         n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
-        near = self._near(origin, e, n_l)
-        far = np.flatnonzero(~near)
-        close = np.flatnonzero(near)
-        # Far: uniform on the triangle (area measure), float32.
-        ef = np.take(e, far)
-        sq = np.sqrt(np.take(r[:, 1], far))
-        b = sq * np.take(r[:, 2], far)
+        close = np.flatnonzero(self._near(o, e, n_l))
+        # Every vertex first gets a point uniform on its triangle (area measure, float32) ...
+        sq = np.sqrt(r1)
+        b = sq * r2
         a = sq - b
-        to = [np.take(c0, ef) - np.take(oc, far) + a * np.take(c1, ef) + b * np.take(c2, ef)
+        to = [np.take(c0, e) - oc + a * np.take(c1, e) + b * np.take(c2, e)
               for c0, c1, c2, oc in zip(self.emitter_corner32_xyz, self.emitter_edge1_32_xyz,
                                         self.emitter_edge2_32_xyz, o)]
-        dist_far = np.sqrt(to[0] * to[0] + to[1] * to[1] + to[2] * to[2])
-        inv = 1.0 / np.where(dist_far > 0, dist_far, 1.0)
-        # Close: uniform in the solid angle (float64: the spherical construction loses precision).
-        ec = np.take(e, close)
-        oc = _rows(origin, close).astype(np.float64)
-        dl_close, omega = spherical_triangle_sample(_rows(self.emitter_corners64, ec) - oc[:, None, :],
-                                                    np.take(r[:, 1], close), np.take(r[:, 2], close))
-        nc = _rows(self.emitter_normal64, ec)
-        denom = _dot(dl_close, nc)
-        t = _dot(_rows(self.emitter_corner64, ec) - oc, nc) / np.where(denom != 0, denom, 1e-300)
-        dist_close = np.where((denom != 0) & (t > 0) & (omega > 0), t, 0.0).astype(np.float32)
-        # Both halves side by side, in the order ``order`` of the vertices.
-        order = np.concatenate([far, close])
+        dist = np.sqrt(to[0] * to[0] + to[1] * to[1] + to[2] * to[2])
+        inv = 1.0 / np.where(dist > 0, dist, 1.0)
         dl = np.empty((k, 3), np.float32)
         for i in range(3):
-            dl[:len(far), i] = to[i] * inv
-        dl[len(far):] = dl_close
-        dist = np.concatenate([dist_far, dist_close])
-        e = np.take(e, order)
+            dl[:, i] = to[i] * inv
+        # ... then the close ones a direction uniform in the solid angle (float64: the spherical
+        # construction loses precision), and the distance to the triangle's plane along it.
+        if len(close):
+            ec = np.take(e, close)
+            oc = _rows(origin, close).astype(np.float64)
+            dl_close, omega = spherical_triangle_sample(_rows(self.emitter_corners64, ec) - oc[:, None, :],
+                                                        np.take(r1, close), np.take(r2, close))
+            nc = _rows(self.emitter_normal64, ec)
+            denom = _dot(dl_close, nc)
+            t = _dot(_rows(self.emitter_corner64, ec) - oc, nc) / np.where(denom != 0, denom, 1e-300)
+            dl[close] = dl_close
+            dist[close] = np.where((denom != 0) & (t > 0) & (omega > 0), t, 0.0)
         d = (dl[:, 0], dl[:, 1], dl[:, 2])
-        cos_y = _dot3(tuple(np.take(normals[:, i], order) for i in range(3)), d)
-        cos_l = -_dot3(tuple(np.take(c, order) for c in n_l), d)
+        cos_y = _dot3((normals[:, 0], normals[:, 1], normals[:, 2]), d)
+        cos_l = -_dot3(n_l, d)
         if self.any_two_sided:
             cos_l = np.where(np.take(self.emitter_two_sided, e), np.abs(cos_l), cos_l)
         ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (dist > 0))
         if len(ok) == 0:
             return out
         tmax = np.maximum(np.take(dist, ok) - self.eps, 0.0)
-        blocked = self.caster.occluded(_rows(origin, np.take(order, ok)), _rows(dl, ok), tmax)
+        blocked = self.caster.occluded(_rows(origin, ok), _rows(dl, ok), tmax)
         stats.shadow_rays += len(ok)
         vis = ok[~blocked]
         if len(vis) == 0:
@@ -548,13 +546,15 @@ class IndirectTracer:
         ev = np.take(e, vis)
         dv = np.take(dist, vis)
         p_light = np.take(self.emitter_pdf_area, ev) * dv * dv / np.take(cos_l, vis)
-        solid = np.flatnonzero(vis >= len(far))
-        if len(solid):
-            p_light[solid] = (np.take(self.emitter_prob, np.take(ev, solid))
-                              / np.maximum(np.take(omega, np.take(vis, solid) - len(far)), 1e-300))
+        if len(close):
+            at = np.searchsorted(close, vis)          # where each visible vertex sits in ``close``
+            solid = np.flatnonzero(np.take(close, np.minimum(at, len(close) - 1)) == vis)
+            if len(solid):
+                p_light[solid] = (np.take(self.emitter_prob, np.take(ev, solid))
+                                  / np.maximum(np.take(omega, np.take(at, solid)), 1e-300))
         q = np.take(cos_y, vis) * np.float32(INV_PI)
         weight = q / (p_light + q) if mis else q / p_light
-        out[np.take(order, vis)] = _rows(self.emitter_radiance, ev) * weight[:, None]
+        out[vis] = _rows(self.emitter_radiance, ev) * weight[:, None]
         return out
 
     def direct_light(self, points, normals, rng, stats=None):
@@ -566,12 +566,12 @@ class IndirectTracer:
                             np.ascontiguousarray(normals, dtype=np.float32), rng, stats, mis=False)
 
     def _near(self, origins, e, n_l=None):
-        """Light-sampling strategy per (ray origin ``origins (k, 3)`` float32, emitter triangle
-        ``e``), as Cycles chooses it: solid-angle sampling when the triangle's longest edge
+        """Light-sampling strategy per (ray origin ``origins`` float32, (k, 3) or its three (k,)
+        components, emitter triangle ``e``), as Cycles chooses it: solid-angle sampling when the triangle's longest edge
         exceeds the origin's distance to its plane (``n_l``: the triangles' normals per
         component, if already gathered). NEE and the MIS weight of emitter hits both call this
         with the same float32 origins, so they always agree on the strategy."""
-        o = (origins[:, 0], origins[:, 1], origins[:, 2])
+        o = origins if isinstance(origins, tuple) else (origins[:, 0], origins[:, 1], origins[:, 2])
         if n_l is None:
             n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
         d_plane = _dot3(o, n_l) - np.take(self.emitter_plane32, e)
