@@ -12,6 +12,12 @@ should be none, such as texels under a box standing on the floor that gathered t
 room (the bug that `tracer.GatherField` now avoids). Blocks with too little reference light to
 give a ratio are ``.``. UNGUIDED and GUIDED are unbiased, so their blocks show the noise level.
 
+Below each map the bias is split by where the texels sit (``contact_classes``): *covered*
+texels have another surface within 2 cm along their normal, or the back of one (under a box
+standing on the floor: hidden from every view), the visible ones are grouped by their distance to other objects
+(< 2 cm, 2-5 cm, farther: the contact shadows are the first group). A block of the map can mix
+covered and visible texels; this split tells which of them carry its bias.
+
 Cycles' reference (DIFFUSE / INDIRECT, adaptive sampling off, 8 bounces) is baked once per
 (scene, object, resolution, samples) into ``bench/results/bias_map/`` and reused.
 """
@@ -29,6 +35,14 @@ from bench.common import RESULTS, log  # noqa: E402
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 #: A block whose reference light is below this fraction of the brightest block's has no ratio.
 DARK = 1e-3
+#: A texel is covered when a surface lies within this distance (metres) along its normal.
+COVERED = 0.02
+#: Distance bands (metres) from other objects of the visible texels.
+BANDS = (0.02, 0.05)
+#: Directions in the texel's tangent plane along which the distance to other objects is probed,
+#: and the height (metres) above the texel they start at (above the bumps of the HEAVY floor).
+PROBES = 32
+PROBE_HEIGHT = 0.004
 
 
 def block_bias(values, reference, blocks):
@@ -48,6 +62,41 @@ def block_bias(values, reference, blocks):
     bias = np.where(dark, np.nan, xs / np.where(dark, 1.0, ys) - 1.0)
     leak = dark & (xs > DARK * max(ys.max(), 1e-300))
     return bias, leak
+
+
+def contact_classes(scene, texels, index):
+    """Per texel of object ``index``: 0 covered, 1, 2, 3 visible at a distance from other objects
+    below ``BANDS[0]``, below ``BANDS[1]``, farther (module docstring; ray casts, metres)."""
+    from lmdp_addon.hemisphere import tangent_frame
+    from lmdp_addon.raycast import RayCaster
+    caster = RayCaster(scene)
+    p = texels.position.astype(np.float64)
+    n = texels.normal.astype(np.float64)
+    tri, dist = caster.intersect(p + 0.001 * n, n)
+    face_normals, _ = scene.triangle_geometry()
+    inside = np.einsum("ij,ij->i", face_normals[np.maximum(tri, 0)], n) > 0   # a back face: in a solid
+    covered = (tri >= 0) & ((dist < COVERED) | inside)
+    frames = tangent_frame(n)
+    origin = p + PROBE_HEIGHT * n
+    nearest = np.full(len(p), np.inf)
+    for a in np.linspace(0.0, 2.0 * np.pi, PROBES, endpoint=False):
+        d = np.cos(a) * frames[:, 0] + np.sin(a) * frames[:, 1]
+        tri, dist = caster.intersect(origin, d)
+        other = (tri >= 0) & (scene.triangle_object[np.maximum(tri, 0)] != index)
+        nearest = np.minimum(nearest, np.where(other, dist, np.inf))
+    return np.where(covered, 0, 1 + np.searchsorted(np.asarray(BANDS), nearest, side="right"))
+
+
+def format_contact(values, reference, classes):
+    """One line: the bias of each class of :func:`contact_classes` (texels, bias)."""
+    names = ("covered", f"visible < {100 * BANDS[0]:.0f} cm from another object",
+             f"{100 * BANDS[0]:.0f}-{100 * BANDS[1]:.0f} cm", "farther")
+    parts = []
+    for c, name in enumerate(names):
+        sel = classes == c
+        if sel.any() and reference[sel].sum() > 0:
+            parts.append(f"{name}: {int(sel.sum())} texels {100 * (values[sel].sum() / reference[sel].sum() - 1):+.1f} %")
+    return "    by contact: " + "; ".join(parts)
 
 
 def format_map(bias, leak):
@@ -115,6 +164,9 @@ def main(argv=None):
             states = "" if lmdp is None else f"{args.points} points, "
             print(f"{mode} {ob.name} ({states}{args.samples} samples): bias {100 * total:+.2f} %")
             print(format_map(*block_bias(values, reference, args.blocks)))
+            ts = ob.texels
+            v, r = values[ts.row, ts.col], reference[ts.row, ts.col]
+            print(format_contact(v, r, contact_classes(scene, ts, scene.object_names.index(ob.name))))
 
 
 if __name__ == "__main__":

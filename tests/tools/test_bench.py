@@ -1,6 +1,7 @@
 """The benchmark harness's own logic (bench/): error metrics, reference-noise correction, the
 "time to reach Cycles' error" interpolation and its win/lose verdicts, the peak-memory probe of the
-subprocess jobs, and the command line. Fast, synthetic data only; nothing here times anything."""
+subprocess jobs, the command line and bias_map's contact split. Fast (synthetic data and a built-in
+scene's arrays); nothing here times anything."""
 import math
 import subprocess
 import sys
@@ -208,3 +209,40 @@ def test_bias_map_finds_a_leak_where_the_reference_is_dark():
     assert finite.sum() == 14 and np.allclose(bias[finite], 0.02)
     text = format_map(bias, leak).splitlines()
     assert text[3].split()[0] == "LEAK" and text[0].split()[3] == "." and text[1].split()[0] == "+2"
+
+
+def test_contact_classes_find_the_texels_under_the_boxes_and_beside_them():
+    """bias_map's split of the Cornell floor: texels inside a box's footprint (found here from
+    the boxes' lowest vertices, not by ray casting) are covered; visible texels within 1.5 cm of a
+    footprint are in the first distance band, texels more than 6 cm from every box and wall in
+    the last. Texels within a texel of a footprint's edge are left out (their centre decides)."""
+    from scipy.spatial import Delaunay
+    from bench.bias_map import contact_classes
+    from lmdp_addon import baking, scenes
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    floor = scene.object_names.index("Floor")
+    ts, _ = baking.object_texels(scene, floor, 32)
+    classes = contact_classes(scene, ts, floor)
+    xy = ts.position[:, :2]
+    texel = 0.56 / 32 * 1.5
+    inside = np.zeros(len(xy), bool)
+    edge = np.full(len(xy), np.inf)
+    for name in ("TallBox", "ShortBox"):
+        tri = scene.triangle_object == scene.object_names.index(name)
+        v = scene.corners()[tri].reshape(-1, 3)
+        foot = np.unique(v[v[:, 2] < 1e-6, :2].round(9), axis=0)
+        hull = Delaunay(foot)
+        inside |= hull.find_simplex(xy) >= 0
+        a, b = foot[hull.convex_hull[:, 0]], foot[hull.convex_hull[:, 1]]
+        ab = b - a
+        t = np.clip(np.einsum("kij,ij->ki", xy[:, None] - a[None], ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
+        edge = np.minimum(edge, np.linalg.norm(xy[:, None] - (a[None] + t[..., None] * ab[None]), axis=2).min(axis=1))
+    lo, hi = scene.vertices[:, :2].min(axis=0), scene.vertices[:, :2].max(axis=0)
+    wall = np.minimum(xy - lo, hi - xy).min(axis=1)
+    sure = edge > texel
+    assert np.all(classes[sure & inside] == 0) and (sure & inside).sum() > 20
+    assert np.all(classes[sure & ~inside] > 0)
+    beside = ~inside & (edge < 0.015) & (wall > 0.1)
+    assert beside.sum() > 5 and np.all(classes[beside] == 1)
+    far = ~inside & (edge > 0.06) & (wall > 0.06)
+    assert far.sum() > 100 and np.all(classes[far] == 3)
