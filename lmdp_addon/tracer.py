@@ -504,7 +504,8 @@ class IndirectTracer:
         origin = points + self.eps * normals
         o = tuple(np.ascontiguousarray(origin[:, i]) for i in range(3))
         n_l = tuple(np.take(c, e) for c in self.emitter_normal32_xyz)
-        close = np.flatnonzero(self._near(o, e, n_l))
+        near = self._near(o, e, n_l)
+        close = np.flatnonzero(near)
         # Every vertex first gets a point uniform on its triangle (area measure, float32) ...
         sq = np.sqrt(r1)
         b = sq * r2
@@ -529,6 +530,8 @@ class IndirectTracer:
             t = _dot(_rows(self.emitter_corner64, ec) - oc, nc) / np.where(denom != 0, denom, 1e-300)
             dl[close] = dl_close
             dist[close] = np.where((denom != 0) & (t > 0) & (omega > 0), t, 0.0)
+            solid_angle = np.zeros(k)
+            solid_angle[close] = omega
         d = (dl[:, 0], dl[:, 1], dl[:, 2])
         cos_y = _dot3((normals[:, 0], normals[:, 1], normals[:, 2]), d)
         cos_l = -_dot3(n_l, d)
@@ -546,12 +549,10 @@ class IndirectTracer:
         ev = np.take(e, vis)
         dv = np.take(dist, vis)
         p_light = np.take(self.emitter_pdf_area, ev) * dv * dv / np.take(cos_l, vis)
-        if len(close):
-            at = np.searchsorted(close, vis)          # where each visible vertex sits in ``close``
-            solid = np.flatnonzero(np.take(close, np.minimum(at, len(close) - 1)) == vis)
-            if len(solid):
-                p_light[solid] = (np.take(self.emitter_prob, np.take(ev, solid))
-                                  / np.maximum(np.take(omega, np.take(at, solid)), 1e-300))
+        solid = np.flatnonzero(np.take(near, vis))
+        if len(solid):
+            p_light[solid] = (np.take(self.emitter_prob, np.take(ev, solid))
+                              / np.maximum(np.take(solid_angle, np.take(vis, solid)), 1e-300))
         q = np.take(cos_y, vis) * np.float32(INV_PI)
         weight = q / (p_light + q) if mis else q / p_light
         out[vis] = _rows(self.emitter_radiance, ev) * weight[:, None]
@@ -567,9 +568,9 @@ class IndirectTracer:
 
     def _near(self, origins, e, n_l=None):
         """Light-sampling strategy per (ray origin ``origins`` float32, (k, 3) or its three (k,)
-        components, emitter triangle ``e``), as Cycles chooses it: solid-angle sampling when the triangle's longest edge
-        exceeds the origin's distance to its plane (``n_l``: the triangles' normals per
-        component, if already gathered). NEE and the MIS weight of emitter hits both call this
+        components, emitter triangle ``e``), as Cycles chooses it: solid-angle sampling when the
+        triangle's longest edge exceeds the origin's distance to its plane (``n_l``: the
+        triangles' normals per component, if already gathered). NEE and the MIS weight of emitter hits both call this
         with the same float32 origins, so they always agree on the strategy."""
         o = origins if isinstance(origins, tuple) else (origins[:, 0], origins[:, 1], origins[:, 2])
         if n_l is None:
