@@ -1,7 +1,7 @@
 """Where the bake's variance comes from: per-sample relative variance of the indirect light at
 random points of a receiver, by path length, and with the scene's mesh light made one-sided.
 
-    .venv/bin/python bench/variance_anatomy.py [SCENE RECEIVER] [--points N] [--paths M]
+    .venv/bin/python bench/variance_anatomy.py [SCENE RECEIVER] [--points N] [--paths M] [--guided]
 
 Prints, for UNGUIDED paths of 1, 2 and 8 bounces, the mean of the luminance of I = E_ind/π over
 the points and its variance per path relative to the squared mean (the number of samples per
@@ -9,7 +9,10 @@ texel needed for a relative RMSE of 1 is this variance), and the share of that v
 largest 0.1 % of the paths carry (a heavy tail: rare paths of large value); then the same at 8 bounces with the
 emitters made one-sided (front side only, as an area light): the difference is what the light's
 back side, hanging 5 mm below the ceiling in the built-in scenes, contributes to the mean and to
-the variance. Engine only (no Blender); a few seconds per scene.
+the variance. With ``--guided`` also GUIDED paths of 8 bounces, guided by the LMDP of the add-on's
+default settings (its own states, 2048 of them, sampled on the whole scene), with either light:
+how much of the variance the guide removes once the gap is gone. Engine only (no Blender); a few
+seconds per scene.
 """
 import argparse
 import sys
@@ -19,7 +22,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lmdp_addon import scenes  # noqa: E402
+from lmdp_addon import baking, pipeline, scenes  # noqa: E402
+from lmdp_addon.settings import Settings  # noqa: E402
 from lmdp_addon.tracer import IndirectTracer  # noqa: E402
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -40,14 +44,17 @@ def receiver_points(scene, name, n, rng):
     return c[:, 0] + u[:, None] * (c[:, 1] - c[:, 0]) + v[:, None] * (c[:, 2] - c[:, 0]), normals[pick]
 
 
-def relative_variance(scene, points, normals, paths, bounces, rng, tail=None):
-    """(mean, variance per path / mean²) of the luminance of UNGUIDED estimates at ``points``;
+def relative_variance(scene, points, normals, paths, bounces, rng, tail=None, guide=None, obj=-1):
+    """(mean, variance per path / mean²) of the luminance of UNGUIDED estimates at ``points``
+    (GUIDED with a ``tracer.StateGuide`` ``guide``; ``obj``: the receiver's object index);
     with ``tail`` = q also the share of the variance that the largest fraction q of the paths
     carry (squared deviations from their point's mean)."""
     n = len(points)
-    tracer = IndirectTracer(scene, "UNGUIDED", max_bounces=bounces)
+    tracer = IndirectTracer(scene, "GUIDED" if guide is not None else "UNGUIDED", max_bounces=bounces,
+                            guide=guide)
     p, nn = np.repeat(points, paths, axis=0), np.repeat(normals, paths, axis=0)
-    values, _ = tracer.trace(p, nn, np.full(n * paths, -1), rng.random((n * paths, 2)), rng.random(n * paths), rng)
+    states = np.full(n * paths, -1) if guide is None else guide.states_at(p, nn, np.full(n * paths, obj))
+    values, _ = tracer.trace(p, nn, states, rng.random((n * paths, 2)), rng.random(n * paths), rng)
     lum = (values.astype(np.float64) @ LUMINANCE).reshape(n, paths)
     mean = lum.mean()
     result = (mean, lum.var(axis=1).mean() / mean ** 2)
@@ -64,6 +71,7 @@ def main(argv=None):
                         help="pairs of SCENE RECEIVER")
     parser.add_argument("--points", type=int, default=2048)
     parser.add_argument("--paths", type=int, default=256)
+    parser.add_argument("--guided", action="store_true", help="also GUIDED paths (module docstring)")
     args = parser.parse_args(argv)
     for kind, name in zip(args.cases[::2], args.cases[1::2]):
         scene = scenes.build_scene_arrays(kind)
@@ -74,10 +82,26 @@ def main(argv=None):
             mean, rv, share = relative_variance(scene, points, normals, args.paths, bounces, rng, tail=TAIL)
             print(f"  up to {bounces} bounce(s): mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}, "
                   f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
+        if args.guided:
+            print(_guided_line(scene, name, points, normals, args.paths, rng, rv))
         scene.triangle_emission_two_sided = np.zeros_like(scene.triangle_emission_two_sided)
         mean, rv, share = relative_variance(scene, points, normals, args.paths, 8, rng, tail=TAIL)
         print(f"  one-sided light, 8 bounces: mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}, "
               f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
+        if args.guided:
+            print(_guided_line(scene, name, points, normals, args.paths, rng, rv, "one-sided light, "))
+
+
+def _guided_line(scene, name, points, normals, paths, rng, unguided, light=""):
+    """The GUIDED counterpart of the last UNGUIDED line (8 bounces), as one printed line."""
+    settings = Settings()
+    lmdp = pipeline.run_all(scene, settings)
+    guide = baking.build_guide(scene, lmdp)
+    mean, rv, share = relative_variance(scene, points, normals, paths, 8, rng, tail=TAIL, guide=guide,
+                                        obj=scene.object_names.index(name))
+    return (f"  {light}GUIDED ({settings.point_count} states), 8 bounces: mean {mean:.4f}, variance per "
+            f"path / mean^2 {rv:7.2f} ({rv / unguided:.2f} x UNGUIDED's), "
+            f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
 
 
 if __name__ == "__main__":

@@ -190,7 +190,11 @@ def test_variance_anatomy_samples_the_receiver_and_reports_each_case(capsys):
     assert 0 < shares[0] <= shares[1] <= shares[2] and shares[2] == pytest.approx(1.0)
     variance_anatomy.main(["CORNELL_BOX", "Floor", "--points", "32", "--paths", "8"])
     out = capsys.readouterr().out
-    assert out.count("bounce(s)") == 3 and "one-sided light" in out
+    assert out.count("bounce(s)") == 3 and "one-sided light" in out and "states), 8 bounces" not in out
+    variance_anatomy.main(["CORNELL_BOX", "Floor", "--points", "32", "--paths", "8", "--guided"])
+    guided = [line for line in capsys.readouterr().out.splitlines() if "states), 8 bounces" in line]
+    assert len(guided) == 2 and guided[1].startswith("  one-sided light, GUIDED")
+    assert all(float(line.split("(")[2].split(" x")[0]) > 0 for line in guided)
 
 
 def test_bias_map_finds_a_leak_where_the_reference_is_dark():
