@@ -64,12 +64,13 @@ def block_bias(values, reference, blocks):
     return bias, leak
 
 
-def contact_classes(scene, texels, index):
+def contact_classes(scene, texels, index, caster=None):
     """Per texel of object ``index``: 0 covered, 1, 2, 3 visible at a distance from other objects
-    below ``BANDS[0]``, below ``BANDS[1]``, farther (module docstring; ray casts, metres)."""
+    below ``BANDS[0]``, below ``BANDS[1]``, farther (module docstring; ray casts, metres;
+    ``caster``: a ``RayCaster`` of ``scene`` to reuse)."""
     from lmdp_addon.hemisphere import tangent_frame
     from lmdp_addon.raycast import RayCaster
-    caster = RayCaster(scene)
+    caster = caster or RayCaster(scene)
     p = texels.position.astype(np.float64)
     n = texels.normal.astype(np.float64)
     tri, dist = caster.intersect(p + 0.001 * n, n)
@@ -149,7 +150,10 @@ def main(argv=None):
 
     from lmdp_addon import baking, pipeline, scenes
     from lmdp_addon.settings import Settings
+    from lmdp_addon.raycast import RayCaster
     scene = scenes.build_scene_arrays(args.scene)
+    caster = RayCaster(scene)
+    classes = {}   # per object: the same texels in every mode
     for mode in args.modes.split(","):
         settings = replace(Settings(), point_count=args.points, bake_mode=mode, bake_samples=args.samples,
                            bake_margin=0, bake_resolution=args.resolution, seed=args.seed)
@@ -165,8 +169,9 @@ def main(argv=None):
             print(f"{mode} {ob.name} ({states}{args.samples} samples): bias {100 * total:+.2f} %")
             print(format_map(*block_bias(values, reference, args.blocks)))
             ts = ob.texels
-            v, r = values[ts.row, ts.col], reference[ts.row, ts.col]
-            print(format_contact(v, r, contact_classes(scene, ts, scene.object_names.index(ob.name))))
+            if ob.name not in classes:
+                classes[ob.name] = contact_classes(scene, ts, scene.object_names.index(ob.name), caster)
+            print(format_contact(values[ts.row, ts.col], reference[ts.row, ts.col], classes[ob.name]))
 
 
 if __name__ == "__main__":

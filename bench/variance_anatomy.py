@@ -80,14 +80,12 @@ def main(argv=None):
         print(f"{kind} / {name}: {args.points} points x {args.paths} paths (UNGUIDED)")
         for bounces in (1, 2, 8):
             mean, rv, share = relative_variance(scene, points, normals, args.paths, bounces, rng, tail=TAIL)
-            print(f"  up to {bounces} bounce(s): mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}, "
-                  f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
+            print(_line(f"up to {bounces} bounce(s)", mean, rv, share))
         if args.guided:
             print(_guided_line(scene, name, points, normals, args.paths, rng, rv))
         scene.triangle_emission_two_sided = np.zeros_like(scene.triangle_emission_two_sided)
         mean, rv, share = relative_variance(scene, points, normals, args.paths, 8, rng, tail=TAIL)
-        print(f"  one-sided light, 8 bounces: mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}, "
-              f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
+        print(_line("one-sided light, 8 bounces", mean, rv, share))
         if args.guided:
             print(_guided_line(scene, name, points, normals, args.paths, rng, rv, "one-sided light, "))
 
@@ -99,8 +97,13 @@ def _guided_line(scene, name, points, normals, paths, rng, unguided, light=""):
     guide = baking.build_guide(scene, lmdp)
     mean, rv, share = relative_variance(scene, points, normals, paths, 8, rng, tail=TAIL, guide=guide,
                                         obj=scene.object_names.index(name))
-    return (f"  {light}GUIDED ({settings.point_count} states), 8 bounces: mean {mean:.4f}, variance per "
-            f"path / mean^2 {rv:7.2f} ({rv / unguided:.2f} x UNGUIDED's), "
+    return _line(f"{light}GUIDED ({settings.point_count} states), 8 bounces", mean, rv, share,
+                 f" ({rv / unguided:.2f} x UNGUIDED's)")
+
+
+def _line(label, mean, rv, share, note=""):
+    """One printed result: the mean, the variance per path / mean² (and ``note``), the tail share."""
+    return (f"  {label}: mean {mean:.4f}, variance per path / mean^2 {rv:7.2f}{note}, "
             f"{100 * TAIL:g} % of the paths carry {100 * share:.0f} % of it")
 
 
