@@ -206,7 +206,7 @@ def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
     assert all(low < b < high for b in biases), biases
 
 
-#: The range quoted in README.md ("Baking"). Measured here -0.7 % / -0.3 % at 2048 / 8192
+#: The range quoted in README.md ("Baking"). Measured here -0.2 % / -0.4 % at 2048 / 8192
 #: points. The bias is the discretisation's own and its sign depends on where the points fall:
 #: ``bench/bias_map.py CORNELL_BOX Floor --modes FINAL_GATHER --resolution 128 --samples 64``
 #: with seeds 0, 1, 2, 100, 101 gives -0.7 / +0.4 / +0.5 / +0.3 / -0.3 % at 2048 points (standard
