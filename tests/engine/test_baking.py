@@ -74,8 +74,10 @@ def test_bake_image_layout_margin_and_stats(cornell):
     assert "bake" in r.summary()
 
 
-def test_bake_is_deterministic_for_a_seed_and_independent_of_threads(cornell, monkeypatch):
-    monkeypatch.setattr(baking, "PATHS_PER_UNIT", 96)  # many small units finishing out of order
+@pytest.mark.parametrize("paths_per_unit", [96, baking.PATHS_PER_UNIT])
+def test_bake_is_deterministic_for_a_seed_and_independent_of_threads(cornell, monkeypatch, paths_per_unit):
+    # 96: many small units finishing out of order; the default: units of several whole batches
+    monkeypatch.setattr(baking, "PATHS_PER_UNIT", paths_per_unit)
     a = baking.bake(cornell, ["Floor"], small(seed=3), threads=1).objects[0]
     b = baking.bake(cornell, ["Floor"], small(seed=3), threads=2).objects[0]
     c = baking.bake(cornell, ["Floor"], small(seed=4), threads=2).objects[0]
@@ -106,6 +108,26 @@ def test_batches_divide_the_samples():
     assert baking.batch_count(7) == 7
     assert baking.batch_count(11) == 1
     assert baking.batch_count(1) == 1
+
+
+@pytest.mark.parametrize("n_texels, samples", [(16384, 1), (16384, 4), (16384, 16), (16384, 64), (16384, 256),
+                                               (9004, 16), (100_000, 16), (10, 16), (3, 7), (1, 1), (0, 4)])
+def test_work_units_cover_every_batch_of_every_texel_once(n_texels, samples):
+    B = baking.batch_count(samples)
+    per_batch = samples // B
+    group, units = baking.work_units(n_texels, B, per_batch)
+    assert B % group == 0
+    count = np.zeros((B, n_texels), int)
+    for b0, lo, hi in units:
+        assert b0 % group == 0 and 0 <= lo < hi <= n_texels
+        count[b0:b0 + group, lo:hi] += 1
+        # bounded size: a unit is one texel chunk of one batch, or whole batches that fit
+        assert group == 1 or group * (hi - lo) * per_batch <= baking.PATHS_PER_UNIT
+        assert (hi - lo) * per_batch <= baking.PATHS_PER_UNIT + per_batch or hi - lo == 1
+    assert np.all(count == 1)
+    assert len(units) >= min(baking.BAKE_THREADS, n_texels * B)
+    if samples in (4, 16) and n_texels * per_batch <= baking.PATHS_PER_UNIT // 4:
+        assert group > 1    # small batches share units
 
 
 def test_stratified_first_uniforms_are_stratified():
