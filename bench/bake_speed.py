@@ -8,12 +8,12 @@ floor at 128 x 128), plus the tracer's throughput against raw embreex.
 
 What it does (one process, headless bpy):
 
-1. builds the demo scene in Blender (``operators.demo_scenes``), Cycles on the CPU with adaptive
+1. builds the demo scene in Blender (``operators.adapters.demo_scenes``), Cycles on the CPU with adaptive
    sampling and indirect clamping off, ``max_bounces`` = diffuse bounces = ``--bounces`` on both
    sides;
 2. a high-sample Cycles reference of the same bake, as two halves (seeds 1, 2) so that its own
    noise is known, cached in ``bench/results/bake_speed/`` (ignored by git);
-3. Cycles at ``--cycles`` samples and the engine (``lmdp_addon.baking.bake``, what ``lmdp.bake``
+3. Cycles at ``--cycles`` samples and the engine (``lmdp_addon.bake.driver.bake``, what ``lmdp.bake``
    calls, on the scene extracted from Blender) in each ``--modes`` at ``--lmdp`` samples; the
    GUIDED / FINAL_GATHER times include the LMDP precompute (sample + build + solve), also shown
    separately;
@@ -163,7 +163,8 @@ def main(argv=None):
     import bpy
     demo = importlib.import_module(module + ".operators.demo_scenes")
     extract = importlib.import_module(module + ".operators.extract")
-    from lmdp_addon import baking, pipeline
+    from lmdp_addon.bake import driver as baking
+    from lmdp_addon.model import pipeline
     from lmdp_addon.settings import Settings
 
     kind, receiver = SCENES[args.scene]

@@ -68,7 +68,7 @@ def contact_classes(scene, texels, index, caster=None):
     """Per texel of object ``index``: 0 covered, 1, 2, 3 visible at a distance from other objects
     below ``BANDS[0]``, below ``BANDS[1]``, farther (module docstring; ray casts, metres;
     ``caster``: a ``RayCaster`` of ``scene`` to reuse)."""
-    from lmdp_addon.hemisphere import tangent_frame
+    from lmdp_addon.model.hemisphere import tangent_frame
     from lmdp_addon.raycast import RayCaster
     caster = caster or RayCaster(scene)
     p = texels.position.astype(np.float64)
@@ -148,7 +148,9 @@ def main(argv=None):
         parser.error("--resolution must be a multiple of --blocks")
     references = cycles_reference(args.scene.upper(), args.objects, args.resolution, args.ref_samples)
 
-    from lmdp_addon import baking, pipeline, scenes
+    from lmdp_addon.bake import driver as baking
+    from lmdp_addon.model import pipeline
+    from lmdp_addon import demo_geometry as scenes
     from lmdp_addon.settings import Settings
     from lmdp_addon.raycast import RayCaster
     scene = scenes.build_scene_arrays(args.scene)

@@ -4,8 +4,8 @@ Cycles' reference bakes.
 The extension is loaded the way Blender loads extensions (``scripts/lmdp_extension.py``: a
 temporary extension repository holding a symlink to the checkout), with ``BLENDER_USER_RESOURCES``
 pointing at a temporary directory so that the user's own Blender setup is never read or written.
-Scenes come from ``operators.demo_scenes.build_demo_scene`` (the same parts as
-``lmdp_addon.scenes``) and bakes from ``operators.demo_scenes.bake_cycles``
+Scenes come from ``operators.adapters.demo_scenes.build_demo_scene`` (the same parts as
+``lmdp_addon.demo_geometry``) and bakes from ``operators.adapters.demo_scenes.bake_cycles``
 (``bpy.ops.object.bake(type='DIFFUSE', pass_filter={'INDIRECT'})`` into a scratch float image,
 adaptive sampling and indirect clamping off, user state restored).
 """

@@ -147,12 +147,12 @@ def engine_threads():
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
     try:
-        from lmdp_addon import dynamics
+        from lmdp_addon.model import dynamics
         out["build_threads"] = int(dynamics.BUILD_THREADS)
     except Exception:  # pragma: no cover
         pass
     try:
-        from lmdp_addon import baking
+        from lmdp_addon.bake import driver as baking
         out["bake_threads"] = int(baking.BAKE_THREADS)
     except Exception:
         pass

@@ -112,8 +112,9 @@ def raw_embree_seconds(scene, calls, threads):
 
 def run_build(profile, out):
     import os
-    from lmdp_addon import dynamics, scenes
-    from lmdp_addon.states import sample_states
+    from lmdp_addon.model import dynamics
+    from lmdp_addon import demo_geometry as scenes
+    from lmdp_addon.model.states import sample_states
     defaults = _defaults()
     R, K = defaults.rays_per_stratum, defaults.light_samples
     cpus = len(os.sched_getaffinity(0))
@@ -212,8 +213,9 @@ def run_solve(profile, out):
 # -- power method against λ (Figures 3 and 4) ----------------------------------------------------
 
 def _small_problem(points, strata, seed=0):
-    from lmdp_addon import dynamics, scenes
-    from lmdp_addon.states import sample_states
+    from lmdp_addon.model import dynamics
+    from lmdp_addon import demo_geometry as scenes
+    from lmdp_addon.model.states import sample_states
     defaults = _defaults()
     scene = scenes.build_scene_arrays("CORNELL_BOX")
     states = sample_states(scene, points, *strata, seed=seed)
@@ -223,8 +225,8 @@ def _small_problem(points, strata, seed=0):
 
 
 def run_convergence(profile, out):
-    from lmdp_addon.costs import build_first_exit_lmdp, thesis_lambda
-    from lmdp_addon.solvers import solve_desirability
+    from lmdp_addon.model.costs import build_first_exit_lmdp, thesis_lambda
+    from lmdp_addon.model.solvers import solve_desirability
     defaults = _defaults()
     scene, states, dyn = _small_problem(profile.convergence_points, profile.convergence_strata)
     default_lambda = thesis_lambda(scene.total_emitted_power_density(), 1.0)
@@ -249,10 +251,10 @@ def run_convergence(profile, out):
 # -- u* of one state against λ (Figure 5) --------------------------------------------------------
 
 def run_policy(profile, out):
-    from lmdp_addon.costs import build_first_exit_lmdp, thesis_lambda
-    from lmdp_addon.hemisphere import world_to_local
-    from lmdp_addon.policy import stratum_policy
-    from lmdp_addon.solvers import solve_desirability
+    from lmdp_addon.model.costs import build_first_exit_lmdp, thesis_lambda
+    from lmdp_addon.model.hemisphere import world_to_local
+    from lmdp_addon.model.policy import stratum_policy
+    from lmdp_addon.model.solvers import solve_desirability
     defaults = _defaults()
     scene, states, dyn = _small_problem(profile.policy_points, profile.policy_strata)
     floor = scene.object_names.index("Floor")
@@ -279,7 +281,7 @@ def run_policy(profile, out):
     physical = stratum_policy(dyn, sol, "all")[i]
     log(f"policy: state {i} at {np.round(states.points[i], 3).tolist()}, {dyn.n_strata} strata, "
         f"{len(dists)} values of λ")
-    from lmdp_addon.hemisphere import stratum_of_local_direction
+    from lmdp_addon.model.hemisphere import stratum_of_local_direction
     light_stratum = int(stratum_of_local_direction(local_light, *profile.policy_strata))
     return {"point": i, "target": list(POLICY_POINT), "light_stratum": light_stratum,
             "position": states.points[i].tolist(), "normal": states.normals[i].tolist(),

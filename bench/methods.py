@@ -14,7 +14,7 @@ Blender session for Cycles). Adding a method means adding an entry to ``speed_er
 
 What is timed (``time.perf_counter`` around the calls, nothing else):
 
-* Cycles: ``operators.demo_scenes.bake_cycles`` = ``bpy.ops.object.bake`` of the receiver (scene
+* Cycles: ``operators.adapters.demo_scenes.bake_cycles`` = ``bpy.ops.object.bake`` of the receiver (scene
   sync, BVH, shading, readback) plus creating and removing its scratch image: what a user waits
   for when baking.
 * LMDP precompute: ``pipeline.run_sample``, ``run_build``, ``run_solve`` (the engine functions the
@@ -73,7 +73,7 @@ class CyclesBake:
 
 
 class LMDPBake:
-    """This project's bake (``lmdp_addon.baking.bake``) in one ``bake_mode``, with the LMDP
+    """This project's bake (``lmdp_addon.bake.driver.bake``) in one ``bake_mode``, with the LMDP
     precompute of ``settings`` for GUIDED and FINAL_GATHER."""
 
     def __init__(self, mode, ladder, name=None, **settings):
@@ -101,7 +101,7 @@ class LMDPBake:
     def prepare(self, case, seed):
         if self.family == "UNGUIDED":
             return Prepared()
-        from lmdp_addon import pipeline
+        from lmdp_addon.model import pipeline
         settings = self.settings(case, seed=seed)
         result = pipeline.LMDPResult(scene=case.scene)
         seconds = {}
@@ -117,7 +117,7 @@ class LMDPBake:
         return Prepared(state=result, seconds=seconds)
 
     def bake(self, case, prepared, samples, seed):
-        from lmdp_addon import baking
+        from lmdp_addon.bake import driver as baking
         settings = self.settings(case, samples, seed)
         with Stopwatch() as sw:
             result = baking.bake(case.scene, [case.receiver], settings, prepared.state)
@@ -132,7 +132,7 @@ class LMDPBake:
 def lmdp_bake_available():
     """``(True, '')`` when the engine's bake exists, else ``(False, reason)``."""
     try:
-        from lmdp_addon import baking  # noqa: F401
+        from lmdp_addon.bake import driver as baking  # noqa: F401
         return True, ""
     except ImportError as exc:
-        return False, f"lmdp_addon.baking is not importable ({exc})"
+        return False, f"lmdp_addon.bake.driver is not importable ({exc})"

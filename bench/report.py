@@ -205,7 +205,7 @@ def _stratum_polygons(U, V, per_edge=12):
     import sys
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
-    from lmdp_addon.hemisphere import concentric_square_to_disk
+    from lmdp_addon.model.hemisphere import concentric_square_to_disk
     polys = []
     s = np.linspace(0.0, 1.0, per_edge)
     for k in range(U * V):
@@ -257,7 +257,7 @@ def _machine_caption(results):
 def _what_is_timed():
     return (
         "**What is timed** (`time.perf_counter` around the calls, medians over the repeats): "
-        "*Cycles*: `operators.demo_scenes.bake_cycles` = `bpy.ops.object.bake(type='DIFFUSE', "
+        "*Cycles*: `operators.adapters.demo_scenes.bake_cycles` = `bpy.ops.object.bake(type='DIFFUSE', "
         "pass_filter={'INDIRECT'})` of the receiver into a scratch float image (Cycles' scene sync, BVH, "
         "sampling, readback; adaptive sampling, denoising and indirect clamping (`sample_clamp_indirect`) off, margin 0). "
         "*LMDP precompute* (GUIDED, FINAL_GATHER): `pipeline.run_sample`, `run_build`, `run_solve`, the "
@@ -267,7 +267,7 @@ def _what_is_timed():
         "rasterisation, path tracing; margin 0). The wall time of a GUIDED or "
         "FINAL_GATHER point is precompute + bake; the precompute is also listed on its own. Writing "
         "results into Blender images is not timed on either side. LMDP runs on the engine's scene "
-        "arrays of the same built-in scene (`lmdp_addon.scenes`), which is what the operators extract "
+        "arrays of the same built-in scene (`lmdp_addon.demo_geometry`), which is what the operators extract "
         "from the Blender scene (`tests/addon/test_extract.py`).")
 
 

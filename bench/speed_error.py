@@ -3,8 +3,8 @@ high-sample Cycles reference of the same bake (issue 6).
 
 For each case (scene, receiver object, resolution, path length):
 
-1. Blender builds the scene from ``operators.demo_scenes`` and the engine from
-   ``lmdp_addon.scenes.build_scene_arrays`` (the same parts; ``tests/addon/test_extract.py``
+1. Blender builds the scene from ``operators.adapters.demo_scenes`` and the engine from
+   ``lmdp_addon.demo_geometry.build_scene_arrays`` (the same parts; ``tests/addon/test_extract.py``
    checks that Blender's extraction gives back these triangles).
 2. The reference: Cycles' bake with ``ref_samples`` samples, made of two independent halves
    (seeds 1 and 2, ``ref_samples / 2`` each), averaged; cached in ``bench/results/reference/``
@@ -139,7 +139,7 @@ def load_or_bake_reference(case, cache_dir):
 
 def scored_texels(case, ref_a, ref_b):
     """Rows and columns of the scored texels, with the coverage comparison (module docstring)."""
-    from lmdp_addon import baking
+    from lmdp_addon.bake import driver as baking
     index = case.scene.object_names.index(case.receiver)
     texels, _ = baking.object_texels(case.scene, index, case.resolution)
     engine_mask = texels.covered_mask()
@@ -162,7 +162,7 @@ def scored_texels(case, ref_a, ref_b):
 # -- running ------------------------------------------------------------------------------------
 
 def prepare_case(key, profile, blender, cache_dir):
-    from lmdp_addon import scenes
+    from lmdp_addon import demo_geometry as scenes
     spec = CASES[key]
     case = BakeCase(key=key, title=spec["title"], kind=spec["kind"], receiver=spec["receiver"],
                     resolution=profile.resolution[key], bounces=profile.bounces,

@@ -22,9 +22,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lmdp_addon import baking, pipeline, scenes  # noqa: E402
+from lmdp_addon.bake import driver as baking  # noqa: E402
+from lmdp_addon.model import pipeline  # noqa: E402
+from lmdp_addon import demo_geometry as scenes  # noqa: E402
 from lmdp_addon.settings import Settings  # noqa: E402
-from lmdp_addon.tracer import IndirectTracer  # noqa: E402
+from lmdp_addon.bake.tracer import IndirectTracer  # noqa: E402
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 #: The tail reported: the share of the variance carried by this fraction of the paths.

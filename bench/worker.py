@@ -60,8 +60,10 @@ class PeakMemory:
 
 def build(args):
     import numpy as np
-    from lmdp_addon import dynamics, scenes, states as states_mod
-    from lmdp_addon.costs import build_first_exit_lmdp
+    from lmdp_addon.model import dynamics
+    from lmdp_addon import demo_geometry as scenes
+    from lmdp_addon.model import states as states_mod
+    from lmdp_addon.model.costs import build_first_exit_lmdp
     scene = scenes.build_scene_arrays(args.kind)
     t = time.perf_counter()
     states = states_mod.sample_states(scene, args.points, args.strata_u, args.strata_v, seed=args.seed)
@@ -96,9 +98,9 @@ def build(args):
 def solve(args):
     import numpy as np
     import scipy.sparse as sp
-    from lmdp_addon.costs import FirstExitLMDP
+    from lmdp_addon.model.costs import FirstExitLMDP
     from lmdp_addon.errors import LMDPError
-    from lmdp_addon.solvers import solve_desirability
+    from lmdp_addon.model.solvers import solve_desirability
     d = np.load(args.load)
     P = sp.csr_matrix((d["P_data"], d["P_indices"], d["P_indptr"]), shape=tuple(d["P_shape"]))
     lmdp = FirstExitLMDP(P=P, q=d["q"], z_terminal=d["z_terminal"], lambda_=float(d["lambda_"]),

@@ -12,7 +12,7 @@ BATCH = 1 << 20
 
 
 class RayCaster:
-    """Embree scene of all valid triangles of a :class:`~lmdp_addon.scene.SceneArrays`.
+    """Embree scene of all valid triangles of a :class:`~lmdp_addon.scene_arrays.SceneArrays`.
 
     ``intersect`` returns the hit triangle (index into the *scene's* triangles, -1 for a miss) and
     the hit distance. Degenerate / non-finite triangles are left out of the BVH.

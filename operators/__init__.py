@@ -12,12 +12,12 @@ MODULE_NAMES = (
     "properties",
     "session",
     "jobs",
-    "panel",
-    "ops_scenes",
-    "ops_pipeline",
-    "ops_display",
-    "gizmos",
-    "ops_bake",
+    "ui.panel",
+    "ops.scenes",
+    "ops.pipeline",
+    "ops.display",
+    "ui.gizmos",
+    "ops.bake",
 )
 
 _registered = []

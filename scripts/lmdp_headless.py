@@ -376,7 +376,7 @@ def lightmap_picture(extension, scene, path, steps):
     its ``<object>_lmdp_indirect`` image, i.e. E_ind/π as baked, no albedo), rendered like the z
     picture; the materials are restored afterwards. None when nothing was baked."""
     import bpy
-    ops_bake = submodule(extension, "operators.ops_bake")
+    ops_bake = submodule(extension, "operators.ops.bake")
     baked = [(obj, ops_bake.own_image(obj.name)) for obj in scene.objects if obj.type == 'MESH']
     baked = [(obj, image) for obj, image in baked if image is not None]
     if not baked:
@@ -409,7 +409,7 @@ def legend_picture(extension, scene, z_path, path):
     except ImportError:
         return None
     record = submodule(extension, "operators.session").peek(scene).get("display")
-    colormap = submodule(extension, "lmdp_addon.colormap")
+    colormap = submodule(extension, "lmdp_addon.display.colormap")
     import numpy as np
     scale = record.scale
     image = plt.imread(z_path)

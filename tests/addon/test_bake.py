@@ -214,7 +214,7 @@ def test_scene_without_light_is_refused(lit_scene):
 def test_zero_resolution_cannot_be_set_and_is_refused_by_the_engine(cornell, lmdp_ext):
     cornell.lmdp.bake_resolution = 0
     assert cornell.lmdp.bake_resolution == 1  # the property's minimum
-    ops_bake = lmdp_ext.sub("operators.ops_bake")
+    ops_bake = lmdp_ext.sub("operators.ops.bake")
     settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
     settings.bake_resolution = 0  # a script can still pass 0 to the engine pieces
     only("Floor")
@@ -237,7 +237,7 @@ def test_cancelled_bake_leaves_the_previous_image_untouched(cornell, lmdp_ext):
     only("Floor")
     assert bpy.ops.lmdp.bake() == {'FINISHED'}
     previous = pixels(bpy.data.images["Floor_lmdp_indirect"]).copy()
-    ops_bake = lmdp_ext.sub("operators.ops_bake")
+    ops_bake = lmdp_ext.sub("operators.ops.bake")
     jobs = lmdp_ext.sub("operators.jobs")
     settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
     settings.bake_samples = 64

@@ -36,7 +36,7 @@ K = 5.0
 
 @pytest.fixture
 def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.demo_scenes")
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
 
 
 def build(kind, lmdp_ext):
@@ -48,8 +48,8 @@ def build(kind, lmdp_ext):
 
 def reference(lmdp_ext, demo, name, resolution, samples, seeds=(1, 2)):
     """Cycles' DIFFUSE/INDIRECT bakes of ``name`` with ``seeds``, cached; (len(seeds), R, R, 3)."""
-    extract = lmdp_ext.sub("operators.extract")
-    baking = lmdp_ext.sub("lmdp_addon.baking")
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    baking = lmdp_ext.sub("lmdp_addon.bake.driver")
     scene = bpy.context.scene
     arrays = extract.extract_scene(bpy.context, [bpy.data.objects[name]])
     out = []

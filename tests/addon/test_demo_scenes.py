@@ -17,23 +17,23 @@ from helpers import add_material, select
 
 @pytest.fixture
 def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.demo_scenes")
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
 
 
 @pytest.fixture
 def library(lmdp_ext):
-    return lmdp_ext.sub("lmdp_addon.scenes")
+    return lmdp_ext.sub("lmdp_addon.demo_geometry")
 
 
 @pytest.fixture
 def texels(lmdp_ext):
-    return lmdp_ext.sub("lmdp_addon.texels")
+    return lmdp_ext.sub("lmdp_addon.bake.texels")
 
 
 @pytest.fixture
 def add_operator(lmdp_ext):
     """lmdp.add_demo_scene, registered by the add-on when ops_scenes is in MODULE_NAMES."""
-    ops_scenes = lmdp_ext.sub("operators.ops_scenes")
+    ops_scenes = lmdp_ext.sub("operators.ops.scenes")
     registered_here = not hasattr(bpy.types, "LMDP_OT_add_demo_scene")
     if registered_here:
         ops_scenes.register()

@@ -66,7 +66,7 @@ def state_values(lmdp_ext, name):
     targets = s.require("dynamics").locator.targets      # None when nothing is buried
     if targets is not None:
         own &= targets
-    luminance = lmdp_ext.sub("lmdp_addon.scene").luminance
+    luminance = lmdp_ext.sub("lmdp_addon.scene_arrays").luminance
     return states.points[own], luminance(solution.z[own]), float(np.median(np.sqrt(states.point_area[own])))
 
 
@@ -86,8 +86,8 @@ def test_show_before_solve_is_refused_and_changes_nothing(cornell, lmdp_ext):
 
 
 def test_physical_mode_writes_z_rgb_luminance_and_colours(solved, lmdp_ext):
-    colormap = lmdp_ext.sub("lmdp_addon.colormap")
-    vf = lmdp_ext.sub("lmdp_addon.vertex_field")
+    colormap = lmdp_ext.sub("lmdp_addon.display.colormap")
+    vf = lmdp_ext.sub("lmdp_addon.display.vertex_field")
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     record = session(lmdp_ext).require("display")
     s = session(lmdp_ext)
@@ -302,7 +302,7 @@ def test_display_survives_save_and_reload(solved, lmdp_ext, tmp_path):
 # -- presets -----------------------------------------------------------------------------------------
 
 def test_viewport_preset(solved, lmdp_ext):
-    ops = lmdp_ext.sub("operators.ops_display")
+    ops = lmdp_ext.sub("operators.ops.display")
     from types import SimpleNamespace
     shading = SimpleNamespace(type='MATERIAL', color_type='MATERIAL', light='STUDIO')
     ops.apply_shading_preset(shading)
@@ -353,7 +353,7 @@ def test_render_override_shows_the_colours_and_restores_the_users(solved, lmdp_e
     xy = (np.arange(16) + 0.5) / 16 * 0.5 - 0.25
     X, Y = np.meshgrid(xy, xy)                 # image rows start at the bottom (y up)
     expected = LinearNDInterpolator(corners[:, :2], colors[:, :3])(np.column_stack([X.ravel(), Y.ravel()]))
-    to_srgb = lmdp_ext.sub("lmdp_addon.colormap").linear_to_srgb
+    to_srgb = lmdp_ext.sub("lmdp_addon.display.colormap").linear_to_srgb
     assert np.abs(srgb.reshape(-1, 3) - to_srgb(expected)).max() < 0.03
     assert bpy.ops.lmdp.view_desirability(target='RENDER', enable=False) == {'FINISHED'}
     assert scene.view_layers[0].material_override == mine
@@ -372,7 +372,7 @@ def test_show_policy_active_object_and_most_informative(solved, lmdp_ext):
     view = s.require("policy")
     assert len(view.points) == 25 and np.all(states.point_object[view.points] == names.index("Floor"))
     assert view.arrows.count > 25
-    gizmos = lmdp_ext.sub("operators.gizmos")
+    gizmos = lmdp_ext.sub("operators.ui.gizmos")
     assert gizmos.LMDP_GGT_policy.poll(bpy.context)
     solved.lmdp.show_policy_arrows = False
     assert not gizmos.LMDP_GGT_policy.poll(bpy.context)
@@ -427,7 +427,7 @@ def test_display_operators_support_undo(lmdp_ext):
 
 
 def test_overlay_is_registered(lmdp_ext):
-    gizmos = lmdp_ext.sub("operators.gizmos")
+    gizmos = lmdp_ext.sub("operators.ui.gizmos")
     for cls in (gizmos.LMDP_GGT_policy, gizmos.LMDP_GT_policy_arrows):
         assert "bl_rna" in cls.__dict__ and cls.bl_rna.identifier == cls.bl_idname   # registered
     assert {'3D', 'PERSISTENT'} <= gizmos.LMDP_GGT_policy.bl_options

@@ -14,17 +14,17 @@ from helpers import add_material, select
 
 @pytest.fixture
 def extract(lmdp_ext):
-    return lmdp_ext.sub("operators.extract")
+    return lmdp_ext.sub("operators.adapters.extract")
 
 
 @pytest.fixture
 def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.demo_scenes")
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
 
 
 @pytest.fixture
 def library(lmdp_ext):
-    return lmdp_ext.sub("lmdp_addon.scenes")
+    return lmdp_ext.sub("lmdp_addon.demo_geometry")
 
 
 def match_triangles(got, ref):
@@ -351,7 +351,7 @@ def _area_light(name, location, shape='RECTANGLE', size=(0.5, 0.25), power=20.0,
 
 def test_area_light_becomes_a_one_sided_quad_with_cycles_radiance(fresh_scene, extract, demo, library, lmdp_ext):
     """Radiance P c / (π A) facing -Z, validated by Cycles' DIRECT bake of a floor under it."""
-    texels = lmdp_ext.sub("lmdp_addon.texels")
+    texels = lmdp_ext.sub("lmdp_addon.bake.texels")
     demo.configure_cycles(bpy.context.scene)
     bpy.ops.mesh.primitive_plane_add(size=1.0)
     floor = bpy.context.object

@@ -5,7 +5,7 @@ from scipy.spatial import cKDTree
 
 
 def floor_texels(ext, scene_arrays, resolution):
-    texels = ext.sub("lmdp_addon.texels")
+    texels = ext.sub("lmdp_addon.bake.texels")
     floor = scene_arrays.object_names.index("Floor")
     tris = np.flatnonzero(scene_arrays.triangle_object == floor)
     normals, _ = scene_arrays.triangle_geometry()
@@ -22,7 +22,7 @@ def test_refinement_converges_towards_cycles(lmdp_ext, fresh_scene):
     longer leak light: ``dynamics.buried_points``) and the per-point error falls. Cycles' own
     noise is measured from two seeds."""
     import bpy
-    demo = lmdp_ext.sub("operators.demo_scenes")
+    demo = lmdp_ext.sub("operators.adapters.demo_scenes")
     session = lmdp_ext.sub("operators.session")
     assert bpy.ops.lmdp.add_demo_scene(kind='CORNELL_BOX') == {'FINISHED'}
     selection = list(bpy.context.selected_objects)

@@ -6,7 +6,7 @@ from helpers import select
 
 
 def test_sections_become_ready_as_the_session_fills(lit_scene, lmdp_ext):
-    panel = lmdp_ext.sub("operators.panel")
+    panel = lmdp_ext.sub("operators.ui.panel")
     store = lmdp_ext.sub("operators.session")
     context = bpy.context
     select([])
@@ -33,7 +33,7 @@ def test_sections_become_ready_as_the_session_fills(lit_scene, lmdp_ext):
 
 
 def test_unguided_bake_needs_only_a_mesh_selection(lit_scene, lmdp_ext):
-    panel = lmdp_ext.sub("operators.panel")
+    panel = lmdp_ext.sub("operators.ui.panel")
     bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
     select([lit_scene["Camera"]])
     assert not panel.LMDP_PT_bake.ready(bpy.context)
@@ -120,7 +120,7 @@ def draw_all(panel, context):
 
 
 def test_sections_draw_status_legend_and_tools(lit_scene, lmdp_ext):
-    panel = lmdp_ext.sub("operators.panel")
+    panel = lmdp_ext.sub("operators.ui.panel")
     common = lmdp_ext.sub("operators.common")
     context = bpy.context
     select([lit_scene["Floor"], lit_scene["Box"]])
@@ -158,7 +158,7 @@ def test_sections_draw_status_legend_and_tools(lit_scene, lmdp_ext):
 def test_run_all_button_carries_the_show_and_bake_toggles(lit_scene, lmdp_ext):
     """The main panel's Run All passes scene.lmdp.run_all_show / run_all_bake to the operator."""
     from types import SimpleNamespace
-    panel = lmdp_ext.sub("operators.panel")
+    panel = lmdp_ext.sub("operators.ui.panel")
     context = bpy.context
     select([lit_scene["Floor"]])
     context.scene.lmdp.run_all_bake = False

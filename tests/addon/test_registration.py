@@ -17,7 +17,7 @@ def test_extension_module_name_is_stable(lmdp_module):
 
 def test_every_listed_submodule_is_registered(lmdp_ext):
     operators = lmdp_ext.sub("operators")
-    registered = [module.__name__.rsplit(".", 1)[1] for module in operators._registered]
+    registered = [module.__name__.split(".operators.", 1)[1] for module in operators._registered]
     assert registered == list(operators.MODULE_NAMES)
 
 

@@ -1,4 +1,4 @@
-"""The engine's texels (lmdp_addon.texels) are Cycles' texels: same coverage, same surface points,
+"""The engine's texels (lmdp_addon.bake.texels) are Cycles' texels: same coverage, same surface points,
 same normals, same footprint and the same EXTEND margin, on the Cornell box built in Blender.
 
 Reference: Cycles' POSITION and NORMAL bakes (``bake_cycles``) of the demo meshes, one sample
@@ -22,11 +22,11 @@ import pytest
 
 @pytest.fixture
 def cornell(fresh_scene, lmdp_ext):
-    demo = lmdp_ext.sub("operators.demo_scenes")
-    extract = lmdp_ext.sub("operators.extract")
+    demo = lmdp_ext.sub("operators.adapters.demo_scenes")
+    extract = lmdp_ext.sub("operators.adapters.extract")
     carriers = demo.build_demo_scene("CORNELL_BOX", bpy.context)
     scene_arrays = extract.extract_scene(bpy.context, carriers)
-    return demo, scene_arrays, lmdp_ext.sub("lmdp_addon.texels")
+    return demo, scene_arrays, lmdp_ext.sub("lmdp_addon.bake.texels")
 
 
 SENTINEL = -1.0e9

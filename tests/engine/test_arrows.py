@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from lmdp_addon import arrows as A
-from lmdp_addon.hemisphere import stratum_centers, stratum_cosine_weights, tangent_frame
+from lmdp_addon.display import arrows as A
+from lmdp_addon.model.hemisphere import stratum_centers, stratum_cosine_weights, tangent_frame
 
 
 def frames_for(normals):
@@ -185,8 +185,9 @@ def test_concatenate():
 
 @pytest.fixture(scope="module")
 def cornell():
-    from lmdp_addon import pipeline, policy
-    from lmdp_addon.scenes import build_scene_arrays
+    from lmdp_addon.model import pipeline
+    from lmdp_addon.model import policy
+    from lmdp_addon.demo_geometry import build_scene_arrays
     from lmdp_addon.settings import Settings
     scene = build_scene_arrays("CORNELL_BOX")
     settings = Settings(point_count=400, rays_per_stratum=2)

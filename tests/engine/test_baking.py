@@ -1,13 +1,15 @@
-"""Bake orchestration (lmdp_addon.baking): texels, batches, determinism, errors, cancellation."""
+"""Bake orchestration (lmdp_addon.bake.driver): texels, batches, determinism, errors, cancellation."""
 import numpy as np
 import pytest
 
-from lmdp_addon import baking, pipeline, scenes
+from lmdp_addon.bake import driver as baking
+from lmdp_addon.model import pipeline
+from lmdp_addon import demo_geometry as scenes
 from lmdp_addon.errors import Cancelled, SceneError, StageOrderError
 from lmdp_addon.progress import Progress
 from lmdp_addon.raycast import RayCaster
 from lmdp_addon.settings import Settings
-from lmdp_addon.texels import rasterize_texels
+from lmdp_addon.bake.texels import rasterize_texels
 
 
 @pytest.fixture(scope="module")

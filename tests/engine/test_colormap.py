@@ -1,8 +1,8 @@
-"""Colour maps and scales of the displayed quantities (lmdp_addon.colormap)."""
+"""Colour maps and scales of the displayed quantities (lmdp_addon.display.colormap)."""
 import numpy as np
 import pytest
 
-from lmdp_addon import colormap as C
+from lmdp_addon.display import colormap as C
 
 
 @pytest.mark.parametrize("name", ["viridis", "inferno"])

@@ -2,13 +2,13 @@
 import numpy as np
 import pytest
 
-from lmdp_addon import hemisphere as H
-from lmdp_addon.dynamics import DirectionPatterns, StateLocator, build_passive_dynamics, estimate_build_bytes
+from lmdp_addon.model import hemisphere as H
+from lmdp_addon.model.dynamics import DirectionPatterns, StateLocator, build_passive_dynamics, estimate_build_bytes
 from lmdp_addon.errors import BudgetError
-from lmdp_addon.scene import SceneArrays
-from lmdp_addon.scenes import (PARALLEL_SQUARES, Part, build_scene_arrays, parts_to_scene_arrays,
+from lmdp_addon.scene_arrays import SceneArrays
+from lmdp_addon.demo_geometry import (PARALLEL_SQUARES, Part, build_scene_arrays, parts_to_scene_arrays,
                                point_to_parallel_square_form_factor, scene_parts)
-from lmdp_addon.states import sample_states
+from lmdp_addon.model.states import sample_states
 
 
 @pytest.fixture(scope="module")
@@ -164,7 +164,7 @@ def test_an_object_in_a_room_with_outward_normals_is_buried_and_named():
     """A room made of a closed box with outward normals (a scaled default cube) shows only back
     faces from inside: the box standing in it is buried, and the build says which object and
     what to do; in the same room with inward normals it is not."""
-    from lmdp_addon.scenes import WHITE, _box_part, _quad_part
+    from lmdp_addon.demo_geometry import WHITE, _box_part, _quad_part
     lamp = _quad_part("Lamp", [(-0.2, -0.2, 1.9), (-0.2, 0.2, 1.9), (0.2, 0.2, 1.9), (0.2, -0.2, 1.9)],
                       emission=(10.0, 10.0, 10.0))
     crate = _box_part("Crate", (0.0, 0.0, 0.5), (0.6, 0.6, 0.6), WHITE)

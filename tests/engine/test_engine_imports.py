@@ -31,7 +31,8 @@ def test_every_engine_module_imports_without_bpy():
     run = run_probe(ROOT)
     assert run.returncode == 0, run.stderr
     imported = set(run.stdout.split())
-    on_disk = {"lmdp_addon." + p.stem for p in (ROOT / "lmdp_addon").glob("*.py") if p.stem != "__init__"}
+    on_disk = {".".join(("lmdp_addon",) + p.relative_to(ROOT / "lmdp_addon").with_suffix("").parts)
+               for p in (ROOT / "lmdp_addon").rglob("*.py") if p.stem != "__init__"}
     assert on_disk <= imported, f"modules not imported by the probe: {sorted(on_disk - imported)}"
 
 

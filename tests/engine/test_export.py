@@ -6,9 +6,9 @@ import pytest
 import scipy.sparse as sp
 from scipy.special import logsumexp
 
-from lmdp_addon.export import export_npz
-from lmdp_addon.pipeline import run_all
-from lmdp_addon.scenes import build_scene_arrays
+from lmdp_addon.model.export import export_npz
+from lmdp_addon.model.pipeline import run_all
+from lmdp_addon.demo_geometry import build_scene_arrays
 from lmdp_addon.settings import Settings
 
 

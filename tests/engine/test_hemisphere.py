@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from lmdp_addon import hemisphere as H
+from lmdp_addon.model import hemisphere as H
 
 
 @pytest.fixture(scope="module")

@@ -3,15 +3,15 @@ hard cases the solver must survive (thesis 3.1; λ convention and rescaling in d
 import numpy as np
 import pytest
 
-from lmdp_addon.costs import build_first_exit_lmdp
-from lmdp_addon.dynamics import build_passive_dynamics
-from lmdp_addon.pipeline import lambda_for, run_all
-from lmdp_addon.policy import optimal_policy, stratum_policy
-from lmdp_addon.scenes import (PARALLEL_SQUARES, SKY_RADIANCE, Part, build_scene_arrays,
+from lmdp_addon.model.costs import build_first_exit_lmdp
+from lmdp_addon.model.dynamics import build_passive_dynamics
+from lmdp_addon.model.pipeline import lambda_for, run_all
+from lmdp_addon.model.policy import optimal_policy, stratum_policy
+from lmdp_addon.demo_geometry import (PARALLEL_SQUARES, SKY_RADIANCE, Part, build_scene_arrays,
                                parts_to_scene_arrays, point_to_parallel_square_form_factor, scene_parts)
 from lmdp_addon.settings import Settings
-from lmdp_addon.solvers import solve_desirability
-from lmdp_addon.states import sample_states
+from lmdp_addon.model.solvers import solve_desirability
+from lmdp_addon.model.states import sample_states
 
 
 def solve(scene, points=400, su=4, sv=4, R=4, mode="PHYSICAL", solver="ITERATIVE", lam=None, seed=0, **kw):

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from lmdp_addon import raycast
-from lmdp_addon.scene import SceneArrays
+from lmdp_addon.scene_arrays import SceneArrays
 
 
 def two_squares(degenerate_first):

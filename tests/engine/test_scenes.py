@@ -1,13 +1,13 @@
-"""Built-in scenes (lmdp_addon.scenes): geometry, orientation, UV layouts, analytic references."""
+"""Built-in scenes (lmdp_addon.demo_geometry): geometry, orientation, UV layouts, analytic references."""
 from collections import Counter
 
 import numpy as np
 import pytest
 
-from lmdp_addon import scenes
+from lmdp_addon import demo_geometry as scenes
 from lmdp_addon.errors import SceneError
-from lmdp_addon.scene import SceneArrays
-from lmdp_addon.texels import rasterize_texels
+from lmdp_addon.scene_arrays import SceneArrays
+from lmdp_addon.bake.texels import rasterize_texels
 
 
 def parts_by_name(kind):

@@ -8,10 +8,10 @@ import pytest
 import scipy.sparse as sp
 from scipy.special import logsumexp
 
-from lmdp_addon.costs import FirstExitLMDP
+from lmdp_addon.model.costs import FirstExitLMDP
 from lmdp_addon.errors import BudgetError
-from lmdp_addon.policy import optimal_policy
-from lmdp_addon.solvers import hops_to_light, solve_desirability
+from lmdp_addon.model.policy import optimal_policy
+from lmdp_addon.model.solvers import hops_to_light, solve_desirability
 
 SOLVERS = ("POWER", "DIRECT", "ITERATIVE")
 LAMBDAS = (1e-6, 1e-3, 0.1, 1.0, 31.4, 1e3)

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from lmdp_addon.errors import SceneError
-from lmdp_addon.scene import SceneArrays
-from lmdp_addon.scenes import build_scene_arrays, parts_to_scene_arrays, scene_parts
-from lmdp_addon.states import sample_states
+from lmdp_addon.scene_arrays import SceneArrays
+from lmdp_addon.demo_geometry import build_scene_arrays, parts_to_scene_arrays, scene_parts
+from lmdp_addon.model.states import sample_states
 
 
 @pytest.fixture(scope="module")

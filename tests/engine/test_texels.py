@@ -1,4 +1,4 @@
-"""Texel rasterisation, footprint sampling and margin dilation (lmdp_addon.texels), analytic checks.
+"""Texel rasterisation, footprint sampling and margin dilation (lmdp_addon.bake.texels), analytic checks.
 
 The agreement with Cycles' own POSITION / NORMAL bakes is tested in
 tests/addon/test_texels_vs_cycles.py; here every expected value is computed by hand.
@@ -6,8 +6,8 @@ tests/addon/test_texels_vs_cycles.py; here every expected value is computed by h
 import numpy as np
 import pytest
 
-from lmdp_addon import texels
-from lmdp_addon.texels import PIXEL_OFFSET, dilate, rasterize_texels, sample_footprint
+from lmdp_addon.bake import texels
+from lmdp_addon.bake.texels import PIXEL_OFFSET, dilate, rasterize_texels, sample_footprint
 
 UNIT_SQUARE_UV = np.array([[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]]], dtype=np.float32)
 

@@ -1,4 +1,4 @@
-"""The wavefront tracer (lmdp_addon.tracer) against analytic indirect light.
+"""The wavefront tracer (lmdp_addon.bake.tracer) against analytic indirect light.
 
 Tolerances are Monte Carlo bounds computed from the samples themselves: an estimate m of n
 independent path values with sample standard deviation s must lie within 5 s / sqrt(n) of the
@@ -7,12 +7,14 @@ analytic value (plus the analytic model's own error where it has one, stated at 
 import numpy as np
 import pytest
 
-from lmdp_addon import baking, pipeline, scenes
-from lmdp_addon.hemisphere import stratum_of_local_direction, tangent_frame
+from lmdp_addon.bake import driver as baking
+from lmdp_addon.model import pipeline
+from lmdp_addon import demo_geometry as scenes
+from lmdp_addon.model.hemisphere import stratum_of_local_direction, tangent_frame
 from lmdp_addon.settings import Settings
-from lmdp_addon.states import sample_states
-from lmdp_addon.tracer import IndirectTracer, StateGuide, TraceStats
-from lmdp_addon.baking import build_guide, build_gather
+from lmdp_addon.model.states import sample_states
+from lmdp_addon.bake.tracer import IndirectTracer, StateGuide, TraceStats
+from lmdp_addon.bake.driver import build_guide, build_gather
 
 K = 5.0  # standard errors
 
@@ -376,7 +378,7 @@ def test_cosine_warps_are_shirley_chiu_and_polar():
     """The texel's stratified first bounce uses the concentric map (as hemisphere.py), later
     bounces the polar map; both give cosine-distributed directions: E[cos θ] = 2/3 and the
     fraction within θ < 60° is sin²(60°) = 3/4."""
-    from lmdp_addon.hemisphere import concentric_square_to_disk
+    from lmdp_addon.model.hemisphere import concentric_square_to_disk
     rng = np.random.default_rng(6)
     u = rng.random((100_000, 2))
     normals = np.tile(np.array([0, 0, 1], np.float32), (len(u), 1))
@@ -396,7 +398,7 @@ def test_light_sampling_gives_the_form_factor_near_and_far(height):
     """D_e = (1/π) ∫ L cos θ dω below a square emitter (both MIS halves: light samples with
     solid-angle sampling close to the light, area sampling far from it, and cosine rays that hit
     it) equals L F, F the analytic point-to-square form factor."""
-    from lmdp_addon.tracer import spherical_triangle_sample
+    from lmdp_addon.bake.tracer import spherical_triangle_sample
     p = scenes.PARALLEL_SQUARES
     parts = [scenes._quad_part("Emitter", [(-.5, -.5, height), (-.5, .5, height), (.5, .5, height), (.5, -.5, height)],
                                emission=p["radiance"])]
@@ -434,10 +436,10 @@ def test_neighbour_average_is_a_distribution_over_shared_strata_and_denoises_the
     """u* from 4 rays per stratum, averaged over 16 same-normal neighbours, is closer to u* of the
     same points from 256 rays per stratum than the raw rows are (mean L1 distance 0.26 vs 0.36);
     rows stay distributions; only points with the same normal (hence the same strata) are mixed."""
-    from lmdp_addon.baking import GUIDE_NEIGHBOURS
-    from lmdp_addon.dynamics import StateLocator
-    from lmdp_addon.policy import stratum_policy
-    from lmdp_addon.tracer import neighbour_average
+    from lmdp_addon.bake.driver import GUIDE_NEIGHBOURS
+    from lmdp_addon.model.dynamics import StateLocator
+    from lmdp_addon.model.policy import stratum_policy
+    from lmdp_addon.bake.tracer import neighbour_average
     scene = scenes.build_scene_arrays("CORNELL_BOX")
     raw = pipeline.run_all(scene, Settings(point_count=1024, rays_per_stratum=4))
     ref = pipeline.run_all(scene, Settings(point_count=1024, rays_per_stratum=256))
@@ -462,9 +464,9 @@ def test_neighbour_average_is_a_distribution_over_shared_strata_and_denoises_the
 def test_neighbour_average_mixes_nearly_equal_normals_on_the_same_frame_branch():
     """Within NEIGHBOUR_MAX_ANGLE normals count as equal, but never across a sign change of the
     normal's z (where the tangent frame jumps); each point's row is the mean of exactly those."""
-    from lmdp_addon.dynamics import StateLocator
-    from lmdp_addon.states import sample_states
-    from lmdp_addon.tracer import NEIGHBOUR_MAX_ANGLE, neighbour_average
+    from lmdp_addon.model.dynamics import StateLocator
+    from lmdp_addon.model.states import sample_states
+    from lmdp_addon.bake.tracer import NEIGHBOUR_MAX_ANGLE, neighbour_average
     scene = scenes.build_scene_arrays("CORNELL_BOX")
     states = sample_states(scene, 256, 2, 2, seed=3)
     locator = StateLocator(scene, states)

@@ -4,9 +4,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from lmdp_addon import vertex_field as VF
-from lmdp_addon.colormap import linear_to_srgb, colormap_srgb
-from lmdp_addon.scene import luminance
+from lmdp_addon.display import vertex_field as VF
+from lmdp_addon.display.colormap import linear_to_srgb, colormap_srgb
+from lmdp_addon.scene_arrays import luminance
 
 
 def plane_states(n, z=0.0, normal=(0, 0, 1), size=1.0, seed=0, obj=0):

@@ -177,7 +177,7 @@ def test_run_rejects_unknown_sections(venv_python, tmp_path):
 
 def test_variance_anatomy_samples_the_receiver_and_reports_each_case(capsys):
     from bench import variance_anatomy
-    from lmdp_addon import scenes
+    from lmdp_addon import demo_geometry as scenes
     scene = scenes.build_scene_arrays("CORNELL_BOX")
     rng = np.random.default_rng(0)
     points, normals = variance_anatomy.receiver_points(scene, "Floor", 500, rng)
@@ -222,7 +222,8 @@ def test_contact_classes_find_the_texels_under_the_boxes_and_beside_them():
     the last. Texels within a texel of a footprint's edge are left out (their centre decides)."""
     from scipy.spatial import Delaunay
     from bench.bias_map import contact_classes
-    from lmdp_addon import baking, scenes
+    from lmdp_addon.bake import driver as baking
+    from lmdp_addon import demo_geometry as scenes
     scene = scenes.build_scene_arrays("CORNELL_BOX")
     floor = scene.object_names.index("Floor")
     ts, _ = baking.object_texels(scene, floor, 32)

@@ -27,11 +27,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .errors import BudgetError
+from ..errors import BudgetError
 from .hemisphere import (square_to_hemisphere, stratum_centers, stratum_of_local_direction,
                          stratum_square_samples)
-from .lights import EmitterSampler
-from .raycast import RayCaster
+from ..bake.lights import EmitterSampler
+from ..raycast import RayCaster
 
 #: Column roles after the point columns.
 WORLD = "world"

@@ -2,9 +2,9 @@
 import bpy
 from bpy.props import EnumProperty
 
-from ..lmdp_addon.errors import LMDPError
-from ..lmdp_addon.scenes import SCENE_KINDS
-from .demo_scenes import SCENE_LABELS, build_demo_scene
+from ...lmdp_addon.errors import LMDPError
+from ...lmdp_addon.demo_geometry import SCENE_KINDS
+from ..adapters.demo_scenes import SCENE_LABELS, build_demo_scene
 
 _DESCRIPTIONS = {
     "CORNELL_BOX": "The Cornell box at 1 m scale: red and green walls, two boxes, a ceiling light",

@@ -10,9 +10,9 @@ swatch icons are previews, not data).
 """
 import bpy
 
-from .common import operator_available, selected_meshes
-from .jobs import running_job
-from .session import format_bytes, format_seconds, peek
+from ..common import operator_available, selected_meshes
+from ..jobs import running_job
+from ..session import format_bytes, format_seconds, peek
 
 
 def _operator(layout, idname, text=None, icon='NONE', enabled=True):
@@ -74,7 +74,7 @@ def _swatch_icon(colormap, position):
     key = f"{colormap}_{position:.3f}"
     preview = collection.get(key)
     if preview is None:
-        from ..lmdp_addon.colormap import colormap_srgb
+        from ...lmdp_addon.display.colormap import colormap_srgb
         try:
             rgb = colormap_srgb([position], colormap)[0]
             size = 16
@@ -107,7 +107,7 @@ def draw_legend(layout, record):
             column.label(text=text)
     kind = f"log scale, {scale.decades:.1f} decades" if scale.log else "linear scale"
     box.label(text=f"{record.colormap.capitalize()}, {kind}")
-    from ..lmdp_addon.colormap import format_log10, format_value
+    from ...lmdp_addon.display.colormap import format_log10, format_value
     fmt = format_log10 if scale.log else format_value
     box.label(text=f"States: {fmt(scale.data_lo)} .. {fmt(scale.data_hi)}")
     box.label(text=record.summary() + f", {format_seconds(record.seconds)}")

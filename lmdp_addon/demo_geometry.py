@@ -2,7 +2,7 @@
 
 Every scene is a list of :class:`Part` objects (one Blender object each): quads (polygons of four
 corners) with per-corner UVs, a diffuse albedo or an emitted radiance. The engine gets them as
-:class:`~lmdp_addon.scene.SceneArrays` through :func:`build_scene_arrays`; the Blender layer
+:class:`~lmdp_addon.scene_arrays.SceneArrays` through :func:`build_scene_arrays`; the Blender layer
 (``operators/demo_scenes.py``) turns the same parts into mesh objects with Diffuse BSDF / Emission
 materials, so an extraction of the Blender scene gives back the same triangles.
 
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import SceneError
-from .scene import SceneArrays
+from .scene_arrays import SceneArrays
 
 #: Scene kinds, in the order the UI lists them.
 SCENE_KINDS = ("CORNELL_BOX", "NARROW_OPENING", "PLANE_UNDER_SKY", "PARALLEL_SQUARES", "HEAVY")

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import SceneError
-from .scene import luminance
-from .settings import COST_MODES
+from ..errors import SceneError
+from ..scene_arrays import luminance
+from ..settings import COST_MODES
 
 
 @dataclass
@@ -29,7 +29,7 @@ class FirstExitLMDP:
     """The linear problem ``z_N = q ⊙ (P_NN z_N + P_NT z_T)``, per channel.
 
     P          CSR (m, m + nT) float64 passive dynamics used by the solve (with the ε self-loop
-               in THESIS mode); columns as in :class:`~lmdp_addon.dynamics.PassiveDynamics`
+               in THESIS mode); columns as in :class:`~lmdp_addon.model.dynamics.PassiveDynamics`
     q          (m, C) diagonal of Q on the non-terminal states (C = 1 THESIS, 3 PHYSICAL)
     z_terminal (nT, C) fixed desirability of the terminal states
     lambda_    λ (1 in PHYSICAL mode)

@@ -1,7 +1,7 @@
 """Operators of the LMDP stages: sample states, build dynamics, solve, export.
 
 Each operator is thin (``jobs.EngineJob``): ``prepare`` reads Blender data into engine arrays,
-``compute`` calls :mod:`lmdp_addon.pipeline` (no bpy), ``apply`` stores the result in the
+``compute`` calls :mod:`lmdp_addon.model.pipeline` (no bpy), ``apply`` stores the result in the
 scene's session. The scene is captured (``SceneArrays``) when the states are sampled; later
 stages work on that snapshot, so edit the scene and sample again to see the change.
 """
@@ -11,15 +11,15 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
-from ..lmdp_addon import pipeline
-from ..lmdp_addon.dynamics import build_passive_dynamics, check_budget
-from ..lmdp_addon.errors import SceneError, StageOrderError
-from ..lmdp_addon.export import export_npz
-from .common import report_error, report_warnings, selected_meshes
-from .extract import extract_scene
-from .jobs import EngineJob
-from .ops_bake import HOOK_UP_ITEMS, apply_bake, compute_bake, planned_bake_inputs
-from .session import format_bytes, session_for
+from ...lmdp_addon.model import pipeline
+from ...lmdp_addon.model.dynamics import build_passive_dynamics, check_budget
+from ...lmdp_addon.errors import SceneError, StageOrderError
+from ...lmdp_addon.model.export import export_npz
+from ..common import report_error, report_warnings, selected_meshes
+from ..adapters.extract import extract_scene
+from ..jobs import EngineJob
+from .bake import HOOK_UP_ITEMS, apply_bake, compute_bake, planned_bake_inputs
+from ..session import format_bytes, session_for
 
 
 def capture_scene(context):

@@ -1,8 +1,8 @@
 """Built-in demo scenes as real Blender objects, and Cycles reference bakes that leave no trace.
 
-:func:`build_demo_scene` turns :func:`lmdp_addon.scenes.scene_parts` into mesh objects with
+:func:`build_demo_scene` turns :func:`lmdp_addon.demo_geometry.scene_parts` into mesh objects with
 ordinary node materials (Diffuse BSDF walls, Emission shader lights), a UV map named "UVMap", a
-camera and Cycles render settings, so Cycles, the user and :func:`operators.extract.extract_scene`
+camera and Cycles render settings, so Cycles, the user and :func:`operators.adapters.extract.extract_scene`
 all see the same scene.
 
 :func:`bake_cycles` runs ``bpy.ops.object.bake`` into a scratch float image and restores
@@ -13,7 +13,7 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-from ..lmdp_addon import scenes as scene_library
+from ...lmdp_addon import demo_geometry as scene_library
 
 #: Label of each scene kind (used for collection names and the Add menu).
 SCENE_LABELS = {

@@ -32,8 +32,8 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .colormap import colormap_linear, linear_scale, log_scale_from_log10
-from .costs import scalar_desirability
-from .scene import luminance
+from ..model.costs import scalar_desirability
+from ..scene_arrays import luminance
 
 #: Neighbouring states considered per sample.
 NEIGHBOURS = 12
@@ -190,7 +190,7 @@ class StateQuantity:
     log10_z    (m,) log10 of the scalar desirability (luminance in PHYSICAL mode); -inf where z = 0
     z_rgb      (m, 3) PHYSICAL-mode radiance per channel, else None
     value      (m,) what the colour shows, interpolated as is: log10 z, J, or log10 residual
-    scale      :class:`~lmdp_addon.colormap.ColorScale` of the quantity (in its own units)
+    scale      :class:`~lmdp_addon.display.colormap.ColorScale` of the quantity (in its own units)
     lambda_    λ of the solution (J = -(ln z)/λ)
     """
 
@@ -213,7 +213,7 @@ def state_quantity(solution, quantity="Z", residuals=None):
     Z: desirability (PHYSICAL: outgoing radiance; its Rec.709 luminance is the scalar z), log
     scale over the 1st-99th percentile of the states. COST_TO_GO: J = -(ln z)/λ of the scalar z
     (design.md's convention), linear scale over the 1st-99th percentile. RESIDUAL:
-    ``residuals (m,)`` from :func:`lmdp_addon.solvers.state_residuals` (relative |z - QPz|/z per
+    ``residuals (m,)`` from :func:`lmdp_addon.model.solvers.state_residuals` (relative |z - QPz|/z per
     state), log scale over the full range, floored at 1e-16.
     """
     if quantity not in QUANTITIES:

@@ -1,4 +1,4 @@
-"""Blender scene -> :class:`~lmdp_addon.scene.SceneArrays`, the engine's only view of bpy data.
+"""Blender scene -> :class:`~lmdp_addon.scene_arrays.SceneArrays`, the engine's only view of bpy data.
 
 :func:`extract_scene` reads every visible mesh of the view layer from the evaluated depsgraph
 (modifiers and geometry nodes applied, instances included, world space), its triangles, the
@@ -23,7 +23,7 @@ object, material and node names.
 import bpy
 import numpy as np
 
-from ..lmdp_addon.scene import SceneArrays
+from ...lmdp_addon.scene_arrays import SceneArrays
 
 #: Cycles' default surface (a polygon without material): Diffuse BSDF, colour 0.8.
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)

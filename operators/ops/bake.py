@@ -6,7 +6,7 @@ The operator is thin (``jobs.EngineJob``):
   everything that can be wrong *before any work* (``baking.check_bake_inputs``: UV maps, overlapping
   UVs, resolution, light, the solution GUIDED / FINAL_GATHER need, an output folder that can be
   created) and gathers the session's solution;
-* ``compute`` (:func:`compute_bake`): ``lmdp_addon.baking.bake`` (no bpy; a worker thread in the
+* ``compute`` (:func:`compute_bake`): ``lmdp_addon.bake.driver.bake`` (no bpy; a worker thread in the
   UI, Esc cancels between work units);
 * ``apply`` (:func:`apply_bake`): the scratch buffers computed above are first saved as OpenEXR
   to temporary files (when ``output_dir`` is set), and only when that worked are they swapped in:
@@ -45,13 +45,13 @@ from dataclasses import dataclass, field
 import bpy
 from bpy.props import EnumProperty
 
-from ..lmdp_addon import baking
-from ..lmdp_addon.errors import LMDPError, SceneError, StageOrderError
-from ..lmdp_addon.pipeline import LMDPResult
-from .common import report_error, report_warnings, selected_meshes
-from .extract import extract_scene
-from .jobs import EngineJob
-from .session import session_for
+from ...lmdp_addon.bake import driver as baking
+from ...lmdp_addon.errors import LMDPError, SceneError, StageOrderError
+from ...lmdp_addon.model.pipeline import LMDPResult
+from ..common import report_error, report_warnings, selected_meshes
+from ..adapters.extract import extract_scene
+from ..jobs import EngineJob
+from ..session import session_for
 
 #: Custom property naming the object an image was baked for (marks the add-on's own images).
 IMAGE_TAG = "lmdp_bake_object"
@@ -142,7 +142,7 @@ def _with_output_dir(inputs, settings):
 
 
 def compute_bake(inputs, settings, progress):
-    """No bpy: the engine bake (``lmdp_addon.baking.bake``)."""
+    """No bpy: the engine bake (``lmdp_addon.bake.driver.bake``)."""
     result = baking.bake(inputs.scene, inputs.names, settings, lmdp=inputs.lmdp, progress=progress,
                          precompute_seconds=inputs.precompute_seconds)
     result.warnings = list(inputs.warnings)

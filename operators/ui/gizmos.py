@@ -2,7 +2,7 @@
 
 ``LMDP_GGT_policy`` is a persistent gizmo group of the 3D viewport; it is shown while the
 scene's session holds a ``policy`` result (Show Policy, Probe) and ``scene.lmdp.show_policy_arrows``
-is on. Its single gizmo draws the segments of :meth:`lmdp_addon.arrows.PolicyView.lines`
+is on. Its single gizmo draws the segments of :meth:`lmdp_addon.display.arrows.PolicyView.lines`
 (arrows coloured by probability, crosses at the probe's next states) as one ``LINES`` batch,
 so thousands of arrows stay interactive. The batch is rebuilt only when the policy result changes.
 
@@ -11,13 +11,13 @@ created lazily inside ``draw``, which never runs there. The gizmo cannot be sele
 """
 import bpy
 
-from .session import peek
+from ..session import peek
 
 LINE_WIDTH = 2.0
 
 
 def policy_view(context):
-    """The scene's :class:`~lmdp_addon.arrows.PolicyView` if the overlay should draw it."""
+    """The scene's :class:`~lmdp_addon.display.arrows.PolicyView` if the overlay should draw it."""
     scene = getattr(context, "scene", None)
     props = getattr(scene, "lmdp", None)
     if props is None or not props.show_policy_arrows:

@@ -9,9 +9,9 @@ import numpy as np
 
 from .costs import build_first_exit_lmdp, thesis_lambda
 from .dynamics import build_passive_dynamics, check_budget
-from .errors import StageOrderError
+from ..errors import StageOrderError
 from .policy import stratum_policy
-from .progress import Progress
+from ..progress import Progress
 from .solvers import solve_desirability
 from .states import sample_states
 
@@ -98,7 +98,7 @@ def run_all(scene, settings, progress=None):
 
 
 def directional_policy(result, columns="all"):
-    """u*(k|x) of every point (m, S); see :func:`lmdp_addon.policy.stratum_policy`."""
+    """u*(k|x) of every point (m, S); see :func:`lmdp_addon.model.policy.stratum_policy`."""
     result.require("solution")
     return stratum_policy(result.dynamics, result.solution, columns)
 

@@ -1,7 +1,7 @@
 """Operators that show the solution: z as vertex colours, u* as arrows, a probe, shading presets.
 
 * ``lmdp.show_desirability``: z (or J, or the residual: ``scene.lmdp.display_quantity``) of the
-  states, interpolated to the vertices of every selected mesh (``lmdp_addon.vertex_field``) and
+  states, interpolated to the vertices of every selected mesh (``lmdp_addon.display.vertex_field``) and
   written as point attributes; with ``scene.lmdp.display_subdivide`` also at the resolution of the
   states through the non-destructive "LMDP Display" modifier (``display_data``).
 * ``lmdp.view_desirability``: one-click presets that make the colours visible: the 3D viewport
@@ -22,16 +22,16 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty
 
-from ..lmdp_addon import arrows as arrow_geometry
-from ..lmdp_addon import vertex_field
-from ..lmdp_addon.colormap import ColorScale
-from ..lmdp_addon.errors import SceneError
-from ..lmdp_addon.policy import optimal_policy, stratum_policy
-from ..lmdp_addon.solvers import state_residuals
-from . import display_data as data
-from .common import report_error, selected_meshes
-from .jobs import EngineJob
-from .session import format_seconds, peek, session_for
+from ...lmdp_addon.display import arrows as arrow_geometry
+from ...lmdp_addon.display import vertex_field
+from ...lmdp_addon.display.colormap import ColorScale
+from ...lmdp_addon.errors import SceneError
+from ...lmdp_addon.model.policy import optimal_policy, stratum_policy
+from ...lmdp_addon.model.solvers import state_residuals
+from ..adapters import display_data as data
+from ..common import report_error, selected_meshes
+from ..jobs import EngineJob
+from ..session import format_seconds, peek, session_for
 
 #: log10 of the smallest normal float32: attributes cannot hold smaller z.
 FLOAT32_LOG10_MIN = float(np.log10(np.finfo(np.float32).tiny))

@@ -1,6 +1,6 @@
 """Arrow geometry of the optimal policy u* (thesis eq. 2.23 / 3.2; Figure 5), without bpy.
 
-The directional optimal policy ``u*(k | x)`` (:func:`lmdp_addon.policy.stratum_policy`) is the
+The directional optimal policy ``u*(k | x)`` (:func:`lmdp_addon.model.policy.stratum_policy`) is the
 probability that the optimal controller sends a path leaving point x through hemisphere stratum
 k. It is drawn as one arrow per (point, stratum) along the stratum's central direction, with
 length ``scale x u*(k|x)``: a point whose policy follows the passive dynamics shows a cosine-shaped
@@ -18,14 +18,14 @@ This module computes everything that is geometry, vectorised over arrows:
   :func:`marker_mesh` (octahedra at next states).
 
 Arrays: ``points (m, 3)`` world metres, ``frames (m, 3, 3)`` rows t, b, n
-(:func:`lmdp_addon.hemisphere.tangent_frame`), ``u (m, S)`` rows summing to one.
+(:func:`lmdp_addon.model.hemisphere.tangent_frame`), ``u (m, S)`` rows summing to one.
 """
 from dataclasses import dataclass
 
 import numpy as np
 
 from .colormap import colormap_linear
-from .hemisphere import stratum_centers, tangent_frame
+from ..model.hemisphere import stratum_centers, tangent_frame
 
 
 @dataclass
@@ -195,7 +195,7 @@ def nearest_state(points, normals, location, candidates=None, side_tolerance=1e-
 def next_state_targets(policy_row_indices, policy_row_values, n_points, count=None):
     """The next states x' of one state's u*(x'|x) that are surface points, largest first.
 
-    ``policy_row_*``: the CSR row of :func:`lmdp_addon.policy.optimal_policy` (column indices and
+    ``policy_row_*``: the CSR row of :func:`lmdp_addon.model.policy.optimal_policy` (column indices and
     probabilities; columns >= n_points are terminals). Returns ``(points (K,), probability (K,),
     terminal_probability)``: the surface next states (at most ``count``), and the total
     probability of the terminal states (lights, world, void) which have no position.
@@ -472,7 +472,7 @@ def probe(states, u, policy_row, location, scale, next_states=24, candidates=Non
     """:class:`Probe` of the state nearest to ``location`` (:func:`nearest_state`).
 
     ``u (m, S)`` directional policy; ``policy_row``: a callable ``i -> (columns, values)`` giving
-    the row of u*(x'|x) over the next states (:func:`lmdp_addon.policy.optimal_policy`).
+    the row of u*(x'|x) over the next states (:func:`lmdp_addon.model.policy.optimal_policy`).
     Every stratum arrow is drawn (the whole distribution, as in Figure 5), with length
     ``scale x u*(k|x)``; with ``longest=True`` the most probable stratum's arrow is ``scale``
     long instead (a single state's distribution is easier to read at a fixed size).

@@ -64,8 +64,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .hemisphere import QUARTER_PI, stratum_of_local_direction
-from .raycast import RayCaster
+from ..model.hemisphere import QUARTER_PI, stratum_of_local_direction
+from ..raycast import RayCaster
 
 INV_PI = 1.0 / np.pi
 #: Largest angle (degrees) between the normals of states whose guide rows are averaged
@@ -375,7 +375,7 @@ class GatherField:
 class IndirectTracer:
     """Traces batches of paths from surface points and returns their indirect-light estimates.
 
-    scene           the :class:`~lmdp_addon.scene.SceneArrays` that is traced
+    scene           the :class:`~lmdp_addon.scene_arrays.SceneArrays` that is traced
     mode            'UNGUIDED', 'GUIDED' or 'FINAL_GATHER'
     max_bounces     N: path vertices y_1..y_N after the shading point (Cycles' max_bounces)
     guide           :class:`StateGuide` (GUIDED, FINAL_GATHER)

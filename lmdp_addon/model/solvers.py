@@ -21,8 +21,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import shortest_path
 
-from .errors import BudgetError, SceneError
-from .settings import SOLVERS
+from ..errors import BudgetError, SceneError
+from ..settings import SOLVERS
 
 #: Above this many unknowns the DIRECT solver refuses: the LU of a visibility graph fills in.
 DIRECT_MAX_UNKNOWNS = 40000

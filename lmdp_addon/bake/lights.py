@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .states import GOLDEN
+from ..model.states import GOLDEN
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """Scene arrays: the whole scene as flat triangle arrays, the engine's only view of Blender data.
 
 The Blender layer (``operators/extract.py``) fills a :class:`SceneArrays` from the evaluated
-depsgraph; tests and benchmarks build them directly (see :mod:`lmdp_addon.scenes`).
+depsgraph; tests and benchmarks build them directly (see :mod:`lmdp_addon.demo_geometry`).
 """
 import threading
 from contextlib import contextmanager

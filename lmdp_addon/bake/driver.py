@@ -4,7 +4,7 @@ like Cycles' ``bake(type='DIFFUSE', pass_filter={'INDIRECT'})``.
 For every baked object: its texels at ``bake_resolution`` (``texels.rasterize_texels``: Cycles'
 mapping of its UV map), ``bake_samples`` paths per texel started at points of the texel's
 footprint (``texels.sample_footprint``: sample 0 the texel point, the others jittered in Cycles'
-half-pixel box), each traced by :class:`~lmdp_addon.tracer.IndirectTracer`, averaged, and the
+half-pixel box), each traced by :class:`~lmdp_addon.bake.tracer.IndirectTracer`, averaged, and the
 ``bake_margin`` filled by ``texels.dilate`` (Cycles' EXTEND margin).
 
 The samples of a texel are split into B independent *batches* (B = the largest divisor of the
@@ -30,13 +30,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .dynamics import StateLocator
-from .errors import SceneError, StageOrderError
-from .policy import stratum_policy
-from .progress import Progress
-from .raycast import RayCaster
-from .settings import BAKE_MODES
-from .states import GOLDEN
+from ..model.dynamics import StateLocator
+from ..errors import SceneError, StageOrderError
+from ..model.policy import stratum_policy
+from ..progress import Progress
+from ..raycast import RayCaster
+from ..settings import BAKE_MODES
+from ..model.states import GOLDEN
 from .texels import dilate, rasterize_texels, sample_footprint
 from .tracer import GatherField, IndirectTracer, StateGuide, TraceStats, neighbour_average
 
@@ -65,13 +65,13 @@ class ObjectBake:
     """The lightmap of one object.
 
     name            object name; the image is ``name + IMAGE_SUFFIX``
-    texels          :class:`~lmdp_addon.texels.TexelSet` (covered texels, Cycles' mapping)
+    texels          :class:`~lmdp_addon.bake.texels.TexelSet` (covered texels, Cycles' mapping)
     triangles       (T_o,) the scene triangle of each of the object's local triangle indices
     value           (n, 3) float32 estimate of E_ind/π per covered texel (W / sr m²)
     standard_error  (n, 3) float32 standard error of ``value`` from the batch means (NaN for 1 batch)
     image           (R, R, 4) float32 RGBA, margin filled, alpha 1 where filled; row 0 = bottom
     samples         paths per texel; batches: independent batches they were split into
-    stats           :class:`~lmdp_addon.tracer.TraceStats`
+    stats           :class:`~lmdp_addon.bake.tracer.TraceStats`
     seconds         wall time of this object's bake
     """
 
@@ -613,7 +613,7 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
 def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=BAKE_THREADS):
     """Bake the lightmaps of the objects ``names`` of ``scene`` (module docstring).
 
-    scene     :class:`~lmdp_addon.scene.SceneArrays` to trace (with UVs)
+    scene     :class:`~lmdp_addon.scene_arrays.SceneArrays` to trace (with UVs)
     names     object names to bake
     settings  :class:`~lmdp_addon.settings.Settings` (bake_mode, bake_resolution, bake_samples,
               bake_margin, guide_fraction, max_bounces, seed)

@@ -1,0 +1,1 @@
+"""The light-transport LMDP (thesis chapter 3): states, passive dynamics, costs, solvers, policy."""

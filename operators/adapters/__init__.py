@@ -1,0 +1,1 @@
+"""bpy data <-> engine arrays: scene extraction, display data, demo scenes, lightmap images."""

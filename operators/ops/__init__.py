@@ -1,0 +1,1 @@
+"""The operators: stages, bake, display, demo scenes (thin: settings -> engine -> results)."""

@@ -1,0 +1,1 @@
+"""The user interface: the LMDP panel and the policy gizmos."""
