@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..model.dynamics import StateLocator
+from ..model.locator import StateLocator
 from ..errors import SceneError, StageOrderError
 from ..model.policy import stratum_policy
 from ..progress import Progress

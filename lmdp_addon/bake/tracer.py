@@ -114,7 +114,7 @@ class TraceStats:
 class StateGuide:
     """The optimal policy of the states as a sampling density (see the module docstring).
 
-    locator          ``dynamics.StateLocator`` of the states (nearest compatible state point)
+    locator          ``locator.StateLocator`` of the states (nearest compatible state point)
     frames           (m, 3, 3) float64 tangent frames of the states (rows t, b, n)
     first, later     (m, S) u*(k|s) for the texel vertex (columns 'points') and later vertices
                      ('points+world'); each row sums to 1

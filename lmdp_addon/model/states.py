@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import SceneError
 from .hemisphere import stratum_cosine_weights, stratum_solid_angle, tangent_frame
 
-GOLDEN = 0.6180339887498949  # 1/φ: the Kronecker sequence frac(i/φ) fills [0,1) evenly
+from ..sampling import GOLDEN
 
 
 @dataclass

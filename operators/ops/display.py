@@ -257,7 +257,7 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
                            "level": level, "lattice": lattice, "spacing": object_spacing, "edge": edge,
                            "key": key, "weights": cache.get(obj.name, (None, None))[1]
                            if cache.get(obj.name, (None,))[0] == key else None})
-        # Buried states (inside or pressed against other geometry: dynamics.buried_points) get no
+        # Buried states (inside or pressed against other geometry: locator.buried_points) get no
         # light; they colour no vertex, or the floor beside a box would darken towards it.
         locator = getattr(session.get("dynamics"), "locator", None)
         shown = getattr(locator, "targets", None)

@@ -19,7 +19,7 @@ def test_refinement_converges_towards_cycles(lmdp_ext, fresh_scene):
     state. The LMDP's discretisation error (piecewise-constant radiance of the states a ray
     lands in, noisy transitions) must be small and shrink as points are added: the mean bias
     stays within 3 % (measured 1.3 % at 1000 points and 1.2 % at 16000, since hidden states no
-    longer leak light: ``dynamics.buried_points``) and the per-point error falls. Cycles' own
+    longer leak light: ``locator.buried_points``) and the per-point error falls. Cycles' own
     noise is measured from two seeds."""
     import bpy
     demo = lmdp_ext.sub("operators.adapters.demo_scenes")

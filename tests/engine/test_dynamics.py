@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from lmdp_addon.model import hemisphere as H
-from lmdp_addon.model.dynamics import DirectionPatterns, StateLocator, build_passive_dynamics, estimate_build_bytes
+from lmdp_addon.model.dynamics import DirectionPatterns, build_passive_dynamics, estimate_build_bytes
+from lmdp_addon.model.locator import StateLocator
 from lmdp_addon.errors import BudgetError
 from lmdp_addon.scene_arrays import SceneArrays
 from lmdp_addon.demo_geometry import (PARALLEL_SQUARES, Part, build_scene_arrays, parts_to_scene_arrays,

@@ -437,7 +437,7 @@ def test_neighbour_average_is_a_distribution_over_shared_strata_and_denoises_the
     same points from 256 rays per stratum than the raw rows are (mean L1 distance 0.26 vs 0.36);
     rows stay distributions; only points with the same normal (hence the same strata) are mixed."""
     from lmdp_addon.bake.driver import GUIDE_NEIGHBOURS
-    from lmdp_addon.model.dynamics import StateLocator
+    from lmdp_addon.model.locator import StateLocator
     from lmdp_addon.model.policy import stratum_policy
     from lmdp_addon.bake.tracer import neighbour_average
     scene = scenes.build_scene_arrays("CORNELL_BOX")
@@ -464,7 +464,7 @@ def test_neighbour_average_is_a_distribution_over_shared_strata_and_denoises_the
 def test_neighbour_average_mixes_nearly_equal_normals_on_the_same_frame_branch():
     """Within NEIGHBOUR_MAX_ANGLE normals count as equal, but never across a sign change of the
     normal's z (where the tangent frame jumps); each point's row is the mean of exactly those."""
-    from lmdp_addon.model.dynamics import StateLocator
+    from lmdp_addon.model.locator import StateLocator
     from lmdp_addon.model.states import sample_states
     from lmdp_addon.bake.tracer import NEIGHBOUR_MAX_ANGLE, neighbour_average
     scene = scenes.build_scene_arrays("CORNELL_BOX")

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.states import GOLDEN
+from .sampling import GOLDEN
 
 
 @dataclass
