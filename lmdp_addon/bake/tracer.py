@@ -323,13 +323,13 @@ class GatherField:
             if len(sel) == 0:
                 continue
             k = min(self.neighbours, tree.n)
-            q = np.hstack([positions[sel], loc.alpha[o] * side_normals[sel]])
+            q = np.hstack([positions[sel], loc.spacing[o] * side_normals[sel]])
             d, nn = tree.query(q, k=k, workers=workers)
             if k == 1:
                 d, nn = d[:, None], nn[:, None]
             ids = loc.index[o][nn]
             facing = np.einsum("kij,kj->ki", loc.normals[ids], side_normals[sel]) > 0.0
-            w = np.where(facing, 1.0 / np.maximum(d, 1e-9 * loc.alpha[o]) ** 2, 0.0)
+            w = np.where(facing, 1.0 / np.maximum(d, 1e-9 * loc.spacing[o]) ** 2, 0.0)
             wsum = w.sum(axis=1)
             val = np.einsum("ki,kic->kc", w, self.irradiance[ids]) / np.where(wsum > 0, wsum, 1.0)[:, None]
             out[sel] = np.where((wsum > 0)[:, None], val, np.nan)
@@ -349,8 +349,8 @@ class GatherField:
         obj = np.asarray(objects)
         if self.object_map is not None:
             obj = np.where(obj >= 0, self.object_map[np.maximum(obj, 0)], -1)
-        alpha = np.where(obj >= 0, np.take(self.locator.alpha, np.maximum(obj, 0)), 0.0)
-        return distances < self.min_spacings * alpha
+        spacing = np.where(obj >= 0, np.take(self.locator.spacing, np.maximum(obj, 0)), 0.0)
+        return distances < self.min_spacings * spacing
 
     def value_at(self, tri, bu, bv, positions, side_normals, front, objects):
         out = np.full((len(tri), 3), np.nan)
@@ -397,7 +397,7 @@ class IndirectTracer:
         self.max_bounces = int(max_bounces)
         self.guide = guide if mode != "UNGUIDED" else None
         self.gather = gather if mode == "FINAL_GATHER" else None
-        self.alpha = float(np.clip(guide_fraction, 0.0, 1.0)) if self.guide is not None else 0.0
+        self.guide_fraction = float(np.clip(guide_fraction, 0.0, 1.0)) if self.guide is not None else 0.0
         self.rr_start = int(rr_start)
         self.caster = caster or RayCaster(scene)
         self.eps = np.float32(self.caster.offset())
@@ -477,7 +477,7 @@ class IndirectTracer:
             cos = _dot(normals, d)
             return d, np.ones(len(normals), np.float32), cos
         has = states >= 0
-        guided = has & (u_mix < self.alpha)
+        guided = has & (u_mix < self.guide_fraction)
         use_guide = np.flatnonzero(guided)
         cos_sel = np.flatnonzero(~guided)
         d = np.empty((len(normals), 3), np.float32)
@@ -493,7 +493,7 @@ class IndirectTracer:
         if len(other):
             g[other] = self.guide.density(states[other], _rows(d, other), first)
         cos = _dot(normals, d).astype(np.float64)
-        pdf = np.where(has, self.alpha * g, 0.0) + np.where(has, 1.0 - self.alpha, 1.0) * np.maximum(cos, 0.0) * INV_PI
+        pdf = np.where(has, self.guide_fraction * g, 0.0) + np.where(has, 1.0 - self.guide_fraction, 1.0) * np.maximum(cos, 0.0) * INV_PI
         w = np.where((cos > 0) & (pdf > 0), cos * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
         return d, w.astype(np.float32), cos
 
@@ -657,7 +657,7 @@ class IndirectTracer:
         d, w, cos_prev = self._sample(nrm, states, np.asarray(u_first, np.float64), np.asarray(u_mix), first=True)
         beta = np.ones((n, 3), np.float32)
         keep = np.flatnonzero(w > 0)
-        idx, pos, nrm, d, w, cos_prev, beta = _compact(keep, idx, pos, nrm, d, w, cos_prev, beta)
+        idx, pos, nrm, d, w, cos_prev, beta = _select_rows(keep, idx, pos, nrm, d, w, cos_prev, beta)
         bounce = 1
         while len(idx):
             origin = pos + self.eps * nrm
@@ -676,7 +676,7 @@ class IndirectTracer:
                     L[idx[lit]] += _rows(bw, lit) * value
             if bounce > self.max_bounces:
                 break
-            idx, origin, d, w, beta, tri, dist, bu, bv = _compact(h, idx, origin, d, w, beta, tri, dist, bu, bv)
+            idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist, bu, bv)
             pos = origin + d * dist[:, None]
             ng = _rows(self.face_normals, tri)
             front = _dot(ng, d) < 0
@@ -695,11 +695,11 @@ class IndirectTracer:
                 stats.gathered += int(done.sum())
                 stats.gather_fallback += int((~done).sum())
                 live = np.flatnonzero(~done)
-                idx, pos, nrm, beta, tri, bu, bv, front, objs = _compact(
+                idx, pos, nrm, beta, tri, bu, bv, front, objs = _select_rows(
                     live, idx, pos, nrm, beta, tri, bu, bv, front, objs)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
-                idx, pos, nrm, beta, tri, bu, bv, front, objs = _compact(
+                idx, pos, nrm, beta, tri, bu, bv, front, objs = _select_rows(
                     np.flatnonzero(alive), idx, pos, nrm, beta, tri, bu, bv, front, objs)
             if len(idx) == 0:
                 break
@@ -712,14 +712,14 @@ class IndirectTracer:
                 q = np.minimum(_channel_max(beta), 1.0)
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = _rows(beta, survive) / q[survive, None]
-                idx, pos, nrm, vstates = _compact(survive, idx, pos, nrm, vstates)
+                idx, pos, nrm, vstates = _select_rows(survive, idx, pos, nrm, vstates)
                 if len(idx) == 0:
                     break
             u = rng.random((len(idx), 3))
             d, w, cos_prev = self._sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
             keep = w > 0
             if not np.all(keep):
-                idx, pos, nrm, d, w, cos_prev, beta = _compact(np.flatnonzero(keep), idx, pos, nrm, d, w,
+                idx, pos, nrm, d, w, cos_prev, beta = _select_rows(np.flatnonzero(keep), idx, pos, nrm, d, w,
                                                                cos_prev, beta)
             bounce += 1
         return L, stats
@@ -744,7 +744,7 @@ def _dot(x, y):
     return x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1] + x[:, 2] * y[:, 2]
 
 
-def _compact(index, *arrays):
+def _select_rows(index, *arrays):
     """The rows ``index`` of every array (the live paths of a wavefront)."""
     return tuple(np.take(a, index, axis=0) for a in arrays)
 

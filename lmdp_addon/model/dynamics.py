@@ -468,8 +468,8 @@ def _build(scene, states, R, seed, progress, caster, exact_nearest, light_sample
                 f.cancel()
             raise
         locator, _, t_locator = tables.result()
-    stratum_transitions = _compact(_stack(blocks))
-    P = _compact(_stack(point_blocks))
+    stratum_transitions = _compact_sparse(_stack(blocks))
+    P = _compact_sparse(_stack(point_blocks))
     counts["rays"] = m * S * R
     counts["buried_points"] = int(np.count_nonzero(buried))
     warnings = _buried_warnings(scene, states, buried)
@@ -509,7 +509,7 @@ def _stack(blocks):
     return sp.vstack(blocks, format="csr") if len(blocks) > 1 else blocks[0]
 
 
-def _compact(matrix):
+def _compact_sparse(matrix):
     """CSR with float32 data and int32 indices (the storage format of the dynamics)."""
     matrix = sp.csr_matrix(matrix)
     matrix.sum_duplicates()

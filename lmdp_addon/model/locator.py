@@ -13,7 +13,7 @@ from .hemisphere import stratum_centers
 class StateLocator:
     """Maps surface hits to the nearest state point on the same object and side (cKDTree).
 
-    Distances are measured in 6D, ``(position, α·normal)`` with ``α`` the object's mean point
+    Distances are measured in 6D, ``(position, spacing·normal)`` with ``spacing`` the object's mean point
     spacing, so a hit prefers points on its own side and facet (thin walls, box edges); a match
     whose normal faces away from the hit side is rejected (-> void).
 
@@ -37,16 +37,16 @@ class StateLocator:
 
     def __init__(self, scene, states, exact=False):
         self.trees = {}
-        self.alpha = np.zeros(len(scene.object_names))
+        self.spacing = np.zeros(len(scene.object_names))
         self.index = {}
         self.targets = None   #: bool mask of the points hits may land on (None: all; :meth:`exclude`)
         for o in np.unique(states.point_object):  # loop over objects, not rays
             ids = np.flatnonzero(states.point_object == o)
             area = float(states.point_area[ids].sum())
-            alpha = np.sqrt(area / len(ids)) if area > 0 else 1.0
-            feats = np.hstack([states.points[ids], alpha * states.normals[ids]])
+            spacing = np.sqrt(area / len(ids)) if area > 0 else 1.0
+            feats = np.hstack([states.points[ids], spacing * states.normals[ids]])
             self.trees[int(o)] = cKDTree(feats)
-            self.alpha[o] = alpha
+            self.spacing[o] = spacing
             self.index[int(o)] = ids
         self.normals = states.normals
         self.scene = scene
@@ -70,7 +70,7 @@ class StateLocator:
             if len(keep) == 0:
                 del self.trees[o], self.index[o]
                 continue
-            self.trees[o] = cKDTree(np.hstack([states.points[keep], self.alpha[o] * states.normals[keep]]))
+            self.trees[o] = cKDTree(np.hstack([states.points[keep], self.spacing[o] * states.normals[keep]]))
             self.index[o] = keep
         if self.exact or len(self.grid_point) == 0:
             return
@@ -85,7 +85,7 @@ class StateLocator:
         has_tree = np.zeros(len(scene.object_names), dtype=bool)
         has_tree[list(self.trees)] = True
         tri_ok = scene.state_triangles() & has_tree[scene.triangle_object]
-        spacing = np.maximum(self.alpha[scene.triangle_object], 1e-12)
+        spacing = np.maximum(self.spacing[scene.triangle_object], 1e-12)
         # Each grid spans its triangle from the corner opposite the longest edge: the two
         # shortest edges give the fewest cells (a right triangle's grid is then half full).
         c = scene.corners()
@@ -201,7 +201,7 @@ class StateLocator:
             if len(ob) == 0:
                 continue
             k = min(k_max, tree.n)
-            q = np.hstack([centre[ob], self.alpha[o] * self.face_normals[bt[ob]]])
+            q = np.hstack([centre[ob], self.spacing[o] * self.face_normals[bt[ob]]])
             dist, near = tree.query(q, k=k, workers=-1)
             dist, near = dist.reshape(len(ob), 1, k), near.reshape(len(ob), 1, k)
             rel = tree.data[near[:, 0]][..., :3] - centre[ob][:, None, :]      # p - c
@@ -238,7 +238,7 @@ class StateLocator:
             sel = np.flatnonzero(objects == o)
             if len(sel) == 0:
                 continue
-            q = np.hstack([positions[sel], self.alpha[o] * side_normals[sel]])
+            q = np.hstack([positions[sel], self.spacing[o] * side_normals[sel]])
             _, nearest = tree.query(q, k=1, workers=workers)
             ids = self.index[o][nearest]
             facing = np.einsum("ij,ij->i", self.normals[ids], side_normals[sel]) > 0.0

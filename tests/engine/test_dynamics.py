@@ -74,11 +74,11 @@ def test_grid_lookup_is_the_nearest_point_to_within_a_cell(cornell):
     exact = grid.locate(pos, grid.face_normals[tri], scene.triangle_object[tri])
 
     def dist6(ids):
-        a = grid.alpha[scene.triangle_object[tri]][:, None]
+        a = grid.spacing[scene.triangle_object[tri]][:, None]
         return np.linalg.norm(np.hstack([states.points[ids] - pos, a * (states.normals[ids] - grid.face_normals[tri])]), axis=1)
 
     extra = dist6(approx) - dist6(exact)
-    spacing = grid.alpha[scene.triangle_object[tri]]
+    spacing = grid.spacing[scene.triangle_object[tri]]
     cell_diagonal = np.sqrt(2) / grid.CELLS_PER_SPACING * spacing * 2  # cell sides <= spacing / 4 (x2: skew)
     assert np.all(extra >= -1e-12)
     assert np.all(extra <= cell_diagonal + 1e-12)
