@@ -15,7 +15,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import metrics  # noqa: E402
-from bench import report  # noqa: E402
+from bench import report_bake  # noqa: E402
 from bench.speed_error import ratio_table, summarise  # noqa: E402
 
 
@@ -146,8 +146,8 @@ def test_summary_and_ratio_table_on_synthetic_curves():
     assert r64["SLOW"]["ratio"] == pytest.approx(2.0) and r64["SLOW"]["status"] == "loses"
     assert r64["BIASED"]["status"] == "loses" and r64["BIASED"]["kind"] == "never"
     assert rows[256]["methods"]["FAST"]["kind"] == "interpolated"
-    text = report._loss_summary({"methods": case["methods"], "ratios": list(rows.values())},
-                                ["FAST", "SLOW", "BIASED"])
+    text = report_bake.loss_summary({"methods": case["methods"], "ratios": list(rows.values())},
+                                     ["FAST", "SLOW", "BIASED"])
     assert "**UNGUIDED loses everywhere in this table.**" in text
     assert "GUIDED wins everywhere in this table." in text
     assert "FINAL_GATHER" in text and "**loses**" in text
