@@ -13,7 +13,7 @@ def what_is_timed():
         "sampling, readback; adaptive sampling, denoising and indirect clamping (`sample_clamp_indirect`) off, margin 0). "
         "*LMDP precompute* (GUIDED, FINAL_GATHER): `pipeline.run_sample`, `run_build`, `run_solve`, the "
         "engine calls of the `lmdp.sample_states` / `build_dynamics` / `solve` operators, each timed. "
-        "*LMDP bake*: `baking.bake`, the engine call of `lmdp.bake` (input checks, ray-caster BVH (GUIDED and "
+        "*LMDP bake*: `lmdp_addon.bake.driver.bake`, the engine call of `lmdp.bake` (input checks, ray-caster BVH (GUIDED and "
         "FINAL_GATHER trace with the build's, built in the precompute), guide construction, texel "
         "rasterisation, path tracing; margin 0). The wall time of a GUIDED or "
         "FINAL_GATHER point is precompute + bake; the precompute is also listed on its own. Writing "
