@@ -15,7 +15,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import metrics  # noqa: E402
-from bench import report  # noqa: E402
+from bench import report, report_bake  # noqa: E402
 from bench.speed_error import ratio_table, summarise  # noqa: E402
 
 
@@ -146,8 +146,8 @@ def test_summary_and_ratio_table_on_synthetic_curves():
     assert r64["SLOW"]["ratio"] == pytest.approx(2.0) and r64["SLOW"]["status"] == "loses"
     assert r64["BIASED"]["status"] == "loses" and r64["BIASED"]["kind"] == "never"
     assert rows[256]["methods"]["FAST"]["kind"] == "interpolated"
-    text = report._loss_summary({"methods": case["methods"], "ratios": list(rows.values())},
-                                ["FAST", "SLOW", "BIASED"])
+    text = report_bake.loss_summary({"methods": case["methods"], "ratios": list(rows.values())},
+                                     ["FAST", "SLOW", "BIASED"])
     assert "**UNGUIDED loses everywhere in this table.**" in text
     assert "GUIDED wins everywhere in this table." in text
     assert "FINAL_GATHER" in text and "**loses**" in text
@@ -251,3 +251,20 @@ def test_contact_classes_find_the_texels_under_the_boxes_and_beside_them():
     assert beside.sum() > 5 and np.all(classes[beside] == 1)
     far = ~inside & (edge > 0.06) & (wall > 0.06)
     assert far.sum() > 100 and np.all(classes[far] == 3)
+
+
+def test_readme_keeps_one_generated_benchmark_block_and_stays_short(tmp_path):
+    """README.md is for users (at most 250 lines) and holds exactly one block that make bench
+    rewrites; rewriting it changes nothing outside the markers."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 250
+    assert text.count(report.README_BEGIN) == 1 and text.count(report.README_END) == 1
+    readme = tmp_path / "README.md"
+    readme.write_text(text, encoding="utf-8")
+    meta = {"git": {"commit": "abc1234"}, "started": "today",
+            "machine": {"cpu": "a CPU", "usable_cpus": 2}}
+    report.update_readme({"meta": meta}, readme=readme)
+    new = readme.read_text(encoding="utf-8")
+    head, tail = text.split(report.README_BEGIN)[0], text.split(report.README_END)[1]
+    assert new.startswith(head) and new.endswith(tail)
+    assert "From `make bench` at commit `abc1234`" in new
