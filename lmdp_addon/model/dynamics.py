@@ -180,12 +180,16 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
     right next to a light the low variance of the stratum rays.
     With K = 0 every row sums to exactly one.
 
-    ``caster``: a :class:`~lmdp_addon.raycast.RayCaster` of ``scene`` to reuse (default: a new one).
+    ``memory_budget_gb``: when given, :func:`check_budget` runs first (callers that checked
+    already, like :func:`lmdp_addon.model.pipeline.run_build`, leave it None). ``caster``: a
+    :class:`~lmdp_addon.raycast.RayCaster` of ``scene`` to reuse (default: a new one).
     """
     R = int(rays_per_stratum)
     if R < 1:
         raise BudgetError(f"Rays per Stratum must be at least 1 (got {R})")
-    check_budget(states.n_points, states.n_strata, R, memory_budget_gb, light_samples, scene.n_triangles)
+    if memory_budget_gb is not None:
+        check_budget(states.n_points, states.n_strata, R, memory_budget_gb, light_samples,
+                     scene.n_triangles)
     with scene.held():
         build = _DynamicsBuild(scene, states, R, seed, caster, exact_nearest, light_samples)
         return build.run(progress)
