@@ -223,7 +223,7 @@ def test_grazing_shadow_rays_next_to_a_light_are_not_clipped():
     """Ceiling points 5 mm above the Cornell light see its two-sided back at grazing angles. The
     next-event estimate of p(light | point) must agree with the stratum-rays-only estimate (no
     shadow rays at all); a shadow ray whose direction is measured from the surface point but
-    traced from the lifted one crosses the light's own plane and came out 5% low. Bound: 5 σ of
+    traced from the lifted one crosses the light's own plane and comes out low. Bound: 5 σ of
     the difference, σ from the spread of the per-seed means."""
     scene = build_scene_arrays("CORNELL_BOX", selected=["Ceiling"])
     states = sample_states(scene, 400, 4, 4, seed=1)

@@ -16,9 +16,9 @@ class Recorder(Progress):
         super().__init__()
         self.begun = []
 
-    def begin(self, stage):
-        self.begun.append(stage)
-        super().begin(stage)
+    def begin(self, step):
+        self.begun.append(step)
+        super().begin(step)
 
 
 @pytest.fixture
