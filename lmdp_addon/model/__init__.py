@@ -6,8 +6,8 @@
   ``patterns`` (the stratum and next-event ray patterns), ``hits`` (hit classification: which
   next state a ray lands in) and ``locator`` (the nearest state point of a hit; buried points);
 * ``costs``: state costs and the first-exit LMDP (3.1.3);
-* ``solvers``: the desirability z (2.22, 3.1.4);
-* ``policy``: the optimal policy u* and the cost-to-go (2.23, 2.24);
+* ``solvers``: the desirability z (2.22, 3.1.4) and the cost-to-go J (2.24);
+* ``policy``: the optimal policy u* over next states and over strata (2.23);
 * ``pipeline``: the stages as one call each, on ``Settings``;
 * ``export``: the problem and its solution as a self-describing ``.npz``.
 """

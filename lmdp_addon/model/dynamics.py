@@ -60,8 +60,15 @@ class PassiveDynamics:
     emitter_radiance     (E, 3) radiance of each emitter terminal (W / sr m^2)
     emitter_names        E names (the emitting objects)
     world_radiance       (3,) radiance of the world terminal
-    Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E`` world, ``m+E+1`` void.
+    rays_per_stratum     R
     counts               rays per landing category (points, emitters, world, void reasons)
+    seconds              wall time of the build's parts (setup, locator, trace, bin, total)
+    locator              the :class:`~lmdp_addon.model.locator.StateLocator` the hits were
+                         mapped with (buried points excluded: ``locator.targets``)
+    warnings             messages for the user (objects mostly buried)
+    caster               the :class:`~lmdp_addon.raycast.RayCaster` (BVH) the rays were traced
+                         with; the bake of the same scene traces with it too
+    Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E`` world, ``m+E+1`` void.
     """
 
     stratum_transitions: sp.csr_matrix
@@ -74,9 +81,9 @@ class PassiveDynamics:
     rays_per_stratum: int
     counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
-    locator: object = field(default=None, repr=False)  #: the StateLocator the hits were mapped with
-    warnings: list = field(default_factory=list)       #: messages for the user (objects mostly buried)
-    caster: object = field(default=None, repr=False)   #: the RayCaster (BVH) the rays were traced with
+    locator: object = field(default=None, repr=False)
+    warnings: list = field(default_factory=list)
+    caster: object = field(default=None, repr=False)
 
     @property
     def n_emitters(self):
