@@ -3,7 +3,7 @@
 Every scene is a list of :class:`Part` objects (one Blender object each): quads (polygons of four
 corners) with per-corner UVs, a diffuse albedo or an emitted radiance. The engine gets them as
 :class:`~lmdp_addon.scene_arrays.SceneArrays` through :func:`build_scene_arrays`; the Blender layer
-(``operators/demo_scenes.py``) turns the same parts into mesh objects with Diffuse BSDF / Emission
+(``operators/adapters/demo_scenes.py``) turns the same parts into mesh objects with Diffuse BSDF / Emission
 materials, so an extraction of the Blender scene gives back the same triangles.
 
 Units and conventions (those of ``SceneArrays``): world metres, Z up, linear RGB albedo, emitted
@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import SceneError
+from .demo_uv import UV_PADDING, grid_uv, quad_charts, quad_dims, shelf_pack
 from .scene_arrays import SceneArrays
 
 #: Scene kinds, in the order the UI lists them.
@@ -43,8 +44,6 @@ RED = (0.63, 0.065, 0.05)
 GREEN = (0.14, 0.45, 0.091)
 #: Radiance of the Cornell box light, W / (sr m^2) per channel (warm white, strength 40).
 CORNELL_LIGHT_RADIANCE = (40.0, 34.0, 24.0)
-#: UV padding between charts of one part, in UV units (2 texels at 128 x 128).
-UV_PADDING = 2.0 / 128.0
 
 
 @dataclass
@@ -146,74 +145,6 @@ def _rotation_z(angle):
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _quad_dims(vertices, faces):
-    """(F, 2) lengths of the first and second edge of each quad (chart width, height)."""
-    v = vertices[faces]
-    return np.stack([np.linalg.norm(v[:, 1] - v[:, 0], axis=1),
-                     np.linalg.norm(v[:, 3] - v[:, 0], axis=1)], axis=1)
-
-
-def _shelf_pack(dims, padding):
-    """Non-overlapping layout of rectangles ``dims (F, 2)`` in [0, 1]^2, at a uniform scale.
-
-    Shelf packing (tallest first) with ``padding`` UV units around every chart. Returns the lower
-    left corner (F, 2) and the size (F, 2) of each chart in UV units.
-    """
-    dims = np.asarray(dims, dtype=np.float64)
-    n = len(dims)
-    order = np.argsort(-dims[:, 1], kind="stable")
-    best = None
-    total = float(np.sum(dims[:, 0] * dims[:, 1]))
-    for width_factor in np.linspace(1.0, 3.0, 41):
-        row_limit = max(np.sqrt(total) * width_factor, dims[:, 0].max())
-        scale = 1.0
-        for _ in range(6):  # the padding is in UV units: iterate scale <-> layout
-            pad = padding / scale
-            pos = np.zeros((n, 2))
-            x = y = pad
-            row_height = 0.0
-            width = 0.0
-            for f in order:
-                w, h = dims[f]
-                if x + w + pad > row_limit + 2 * pad and x > pad:
-                    y += row_height + pad
-                    x = pad
-                    row_height = 0.0
-                pos[f] = (x, y)
-                x += w + pad
-                row_height = max(row_height, h)
-                width = max(width, x)
-            height = y + row_height + pad
-            scale = 1.0 / max(width, height)
-        if best is None or scale > best[0]:
-            best = (scale, pos.copy())
-    scale, pos = best
-    return pos * scale, dims * scale
-
-
-def _uv_charts(vertices, faces, padding=UV_PADDING):
-    """Per-corner UVs (F, 4, 2): one rectangle chart per quad, packed without overlap.
-
-    A part with a single quad gets the whole square [0, 1]^2.
-    """
-    faces = np.asarray(faces)
-    if len(faces) == 1:
-        return np.array([[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]])
-    corner, size = _shelf_pack(_quad_dims(vertices, faces), padding)
-    unit = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    return corner[:, None, :] + unit[None, :, :] * size[:, None, :]
-
-
-def _grid_uv(nu, nv, lo=(0.0, 0.0), hi=(1.0, 1.0)):
-    """Per-corner UVs (nu*nv, 4, 2) of an nu x nv grid of quads covering [lo, hi]."""
-    u = np.linspace(lo[0], hi[0], nu + 1)
-    v = np.linspace(lo[1], hi[1], nv + 1)
-    i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="xy")
-    i, j = i.ravel(), j.ravel()
-    return np.stack([np.stack([u[i], v[j]], 1), np.stack([u[i + 1], v[j]], 1),
-                     np.stack([u[i + 1], v[j + 1]], 1), np.stack([u[i], v[j + 1]], 1)], axis=1)
-
-
 def _grid(origin, edge_u, edge_v, nu, nv, bump=0.0, bump_waves=3.0):
     """An nu x nv grid of quads on the parallelogram origin + s edge_u + t edge_v.
 
@@ -243,7 +174,7 @@ def _grid(origin, edge_u, edge_v, nu, nv, bump=0.0, bump_waves=3.0):
 def _quad_part(name, corners, albedo=(0, 0, 0), emission=(0, 0, 0)):
     """A single-quad part; ``corners (4, 3)`` counter-clockwise seen from the front side."""
     return Part(name, np.asarray(corners, dtype=np.float64), [[0, 1, 2, 3]],
-                _uv_charts(np.asarray(corners), [[0, 1, 2, 3]]), albedo, emission)
+                quad_charts(np.asarray(corners), [[0, 1, 2, 3]]), albedo, emission)
 
 
 def _box_faces():
@@ -271,15 +202,15 @@ def _box_part(name, center, size, albedo, angle=0.0):
     """A closed box (6 quads, outward normals, 8 shared vertices), rotated by ``angle`` about Z."""
     verts = _box_corners(center, size, angle)
     faces = _box_faces()
-    return Part(name, verts, faces, _uv_charts(verts, faces), albedo)
+    return Part(name, verts, faces, quad_charts(verts, faces), albedo)
 
 
 def _subdivided_box_part(name, center, size, albedo, angle, n, bump):
     """A closed box whose faces are n x n grids (bumpy), each grid in its own UV chart."""
     corners = _box_corners(center, size, angle)
     quads = _box_faces()
-    dims = _quad_dims(corners, quads)
-    chart_pos, chart_size = _shelf_pack(dims, UV_PADDING)
+    dims = quad_dims(corners, quads)
+    chart_pos, chart_size = shelf_pack(dims, UV_PADDING)
     verts, faces, uvs = [], [], []
     offset = 0
     for q, (chart_lo, chart_sz) in zip(quads, zip(chart_pos, chart_size)):
@@ -287,7 +218,7 @@ def _subdivided_box_part(name, center, size, albedo, angle, n, bump):
         v, f = _grid(a, b - a, d - a, n, n, bump=bump)
         verts.append(v)
         faces.append(f + offset)
-        uvs.append(_grid_uv(n, n, chart_lo, chart_lo + chart_sz))
+        uvs.append(grid_uv(n, n, chart_lo, chart_lo + chart_sz))
         offset += len(v)
     return Part(name, np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs), albedo)
 
@@ -333,7 +264,7 @@ def _holed_slab_part(name, x_range, y_range, z_range, hole_y, hole_z, albedo):
     corners = np.asarray(quads, dtype=np.float64)
     verts, inverse = np.unique(corners.reshape(-1, 3).round(12), axis=0, return_inverse=True)
     faces = inverse.reshape(-1, 4)
-    return Part(name, verts, faces, _uv_charts(verts, faces), albedo)
+    return Part(name, verts, faces, quad_charts(verts, faces), albedo)
 
 
 # -- the scenes -------------------------------------------------------------------------------
@@ -348,7 +279,7 @@ def _cornell_parts(subdivisions=0, bump=0.0):
             return _quad_part(name, corners, albedo)
         v, f = _grid(corners[0], corners[1] - corners[0], corners[3] - corners[0],
                      subdivisions, subdivisions, bump=bump)
-        return Part(name, v, f, _grid_uv(subdivisions, subdivisions), albedo)
+        return Part(name, v, f, grid_uv(subdivisions, subdivisions), albedo)
 
     parts = [
         wall("Floor", (lo, lo, 0), (hi, lo, 0), (hi, hi, 0), (lo, hi, 0), WHITE),

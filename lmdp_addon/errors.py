@@ -14,11 +14,11 @@ class BudgetError(LMDPError):
 
 
 class StageOrderError(LMDPError):
-    """A stage was run before the stage it depends on ("Build the dynamics first")."""
+    """A step was run before the stage it needs exists ("Build the dynamics first")."""
 
 
 class Cancelled(LMDPError):
-    """The user cancelled a long-running stage; nothing was written."""
+    """The user cancelled a long-running step; nothing was written."""
 
     def __init__(self, message="Cancelled by the user"):
         super().__init__(message)

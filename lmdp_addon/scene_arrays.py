@@ -1,6 +1,6 @@
 """Scene arrays: the whole scene as flat triangle arrays, the engine's only view of Blender data.
 
-The Blender layer (``operators/extract.py``) fills a :class:`SceneArrays` from the evaluated
+The Blender layer (``operators/adapters/extract.py``) fills a :class:`SceneArrays` from the evaluated
 depsgraph; tests and benchmarks build them directly (see :mod:`lmdp_addon.demo_geometry`).
 """
 import threading
@@ -85,9 +85,8 @@ class SceneArrays:
     @contextmanager
     def held(self):
         """Within this block the derived geometry (corners, normals and areas, emitter groups) is
-        computed once and then reused: the build and the bake ask for it from several places
-        (on the 249 k-triangle heavy scene, nine normal-and-area computations per build cost
-        0.46 s). The arrays must not change inside the block; outside it nothing is kept."""
+        computed once and then reused: the build and the bake ask for it from several places,
+        and each computation walks every triangle. The arrays must not change inside the block; outside it nothing is kept."""
         with _HOLD_LOCK:
             if self._hold_depth == 0:
                 self._held = {}

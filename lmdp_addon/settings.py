@@ -1,4 +1,4 @@
-"""Plain settings for every stage, mirrored one to one by ``scene.lmdp`` in Blender.
+"""Plain settings for every step, mirrored one to one by ``scene.lmdp`` in Blender.
 
 Operators copy ``scene.lmdp`` into a :class:`Settings` (``Settings.from_mapping``) and pass it to
 the engine; scripts and tests build one directly.
@@ -35,7 +35,7 @@ class Settings:
     guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
     max_bounces: int = 8              #: path length cap of the tracer (Russian roulette after 3)
     # General
-    seed: int = 0                     #: random seed; every stage is deterministic for a seed
+    seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
     memory_budget_gb: float = 8.0     #: refuse to build problems whose estimate exceeds this
 

@@ -20,7 +20,7 @@ This module computes everything that is geometry, vectorised over arrows:
 Arrays: ``points (m, 3)`` world metres, ``frames (m, 3, 3)`` rows t, b, n
 (:func:`lmdp_addon.model.hemisphere.tangent_frame`), ``u (m, S)`` rows summing to one.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -65,8 +65,7 @@ class Arrows:
         parts = [p for p in parts if p is not None]
         if not parts:
             return cls.empty()
-        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                     ("starts", "directions", "lengths", "probability", "point", "stratum")))
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
 
 
 # -- which points ---------------------------------------------------------------------------------

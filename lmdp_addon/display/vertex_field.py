@@ -20,7 +20,7 @@ at arbitrary sample points (mesh vertices, or the nodes of a finer display latti
   neighbours, exact where z underflows float64); PHYSICAL-mode radiance is interpolated linearly
   per RGB channel (radiance is additive) and ``z`` is its Rec.709 luminance.
 * :func:`triangle_lattice`, :func:`subdivision_level`: the regular subdivision of triangles
-  used to show a faithful field on coarse meshes (see ``operators/ops_display.py``).
+  used to show a faithful field on coarse meshes (see ``operators/ops/display.py``).
 
 Arrays: ``points (n, 3)`` world metres, ``normals (n, 3)`` unit, ``objects (n,)`` int object
 indices (those of ``SceneArrays.object_names``), ``values (m, C)``.

@@ -115,7 +115,7 @@ def stratum_cosine_weights(strata_u, strata_v, resolution=None):
     On the square, ``cos θ = 1 - r^2`` with ``r = max(|2u-1|, |2v-1|)`` (concentric radius) and
     ``dω = 2π du dv``, so ``w_k = 2 ∫∫_cell (1 - max(a², b²)) du dv``; integrated with a fine
     midpoint rule (relative error < 1e-6) and renormalised to sum exactly to 1. Computed once
-    per grid (about 5 ms for 4 x 4) and copied out.
+    per grid and copied out.
     """
     return _stratum_cosine_weights(int(strata_u), int(strata_v), resolution).copy()
 

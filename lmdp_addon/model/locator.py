@@ -23,10 +23,10 @@ class StateLocator:
     point spacing along each of those edges: a front-face hit takes the
     nearest point of its cell's centre. This resolves the nearest point to a quarter of the
     spacing (a hit may go to a neighbour that is at most one cell diagonal farther than the
-    nearest; see ``tests/engine/test_dynamics.py`` for the measured rate). The cells of large
+    nearest; ``tests/engine/test_locator.py`` bounds how often). The cells of large
     triangles are filled a block at a time (:meth:`_fill_blocks`), with the same result as a
     query per cell centre. ``exact=True`` queries the trees for every hit instead. Back-face
-    hits go to the void (:class:`HitClassifier`).
+    hits go to the void (:class:`~lmdp_addon.model.hits.HitClassifier`).
     """
 
     CELLS_PER_SPACING = 4
@@ -167,23 +167,11 @@ class StateLocator:
         Distances are 6-D as in :meth:`locate`; within a triangle the normal part is the same
         for x and c, so ``|p - x|² = |p - c|² - 2 (p - c)·(x - c) + |x - c|²``.
         """
-        B, k_max = self.BLOCK, self.BLOCK_CANDIDATES
+        B = self.BLOCK
         gu, gv = self.gu, self.gv
         c = self.grid_corners
         e1, e2 = self.grid_edges()
-        # Blocks that meet the triangle: in block row I, those whose first cell is in row I*B.
-        brows = -(-gu[tris] // B)
-        row_t = np.repeat(tris, brows)
-        row_I = np.arange(len(row_t)) - np.repeat(np.cumsum(brows) - brows, brows)
-        per_row = -(-self._row_length(row_t, row_I * B) // B)
-        bt = np.repeat(row_t, per_row)
-        i0 = np.repeat(row_I, per_row) * B
-        j0 = (np.arange(len(bt)) - np.repeat(np.cumsum(per_row) - per_row, per_row)) * B
-        a = np.arange(B * B)
-        i = i0[:, None] + a // B                              # (blocks, B*B) cells
-        j = j0[:, None] + a % B
-        valid = i < gu[bt, None]
-        valid &= j < self._row_length(np.broadcast_to(bt[:, None], i.shape), np.minimum(i, gu[bt, None] - 1))
+        bt, i0, j0, i, j, valid = self._blocks(tris)
         cu = (i0 + np.minimum(i0 + B, gu[bt])) / (2.0 * gu[bt])     # the block's centre (u, v)
         cv = (j0 + np.minimum(j0 + B, gv[bt])) / (2.0 * gv[bt])
         du = (i + 0.5) / gu[bt, None] - cu[:, None]                 # x - c = du e1 + dv e2
@@ -200,21 +188,7 @@ class StateLocator:
             ob = np.flatnonzero(objects[bt] == o)
             if len(ob) == 0:
                 continue
-            k = min(k_max, tree.n)
-            q = np.hstack([centre[ob], self.spacing[o] * self.face_normals[bt[ob]]])
-            dist, near = tree.query(q, k=k, workers=-1)
-            dist, near = dist.reshape(len(ob), 1, k), near.reshape(len(ob), 1, k)
-            rel = tree.data[near[:, 0]][..., :3] - centre[ob][:, None, :]      # p - c
-            g1 = -2.0 * np.einsum("bkj,bj->bk", rel, e1[bt[ob]])[:, None, :]
-            g2 = -2.0 * np.einsum("bkj,bj->bk", rel, e2[bt[ob]])[:, None, :]
-            score = dist ** 2 + du[ob, :, None] * g1 + dv[ob, :, None] * g2   # |p - x|² - |x - c|²
-            best = np.argmin(score, axis=2)[..., None]
-            d_best = np.sqrt(np.maximum(np.take_along_axis(score, best, axis=2)[..., 0]
-                                        + dx[ob] ** 2, 0.0))
-            sure[ob] = (k == tree.n) | (d_best + dx[ob] < dist[:, :, -1] * (1.0 - 1e-9))
-            ids = self.index[o][np.take_along_axis(near, best, axis=2)[..., 0]]
-            facing = np.einsum("bcj,bj->bc", self.normals[ids], self.face_normals[bt[ob]]) > 0.0
-            found[ob] = np.where(facing, ids, -1)
+            found[ob], sure[ob] = self._nearest_candidates(o, tree, bt[ob], centre[ob], du[ob], dv[ob], dx[ob])
         redo = valid & ~sure
         if np.any(redo):
             rt = bt[np.nonzero(redo)[0]]
@@ -222,6 +196,46 @@ class StateLocator:
             self.cells_queried_exactly += int(np.count_nonzero(redo))
         bt_cells = np.broadcast_to(bt[:, None], i.shape)[valid]
         self.grid_point[self.grid_offset[bt_cells] + i[valid] * gv[bt_cells] + j[valid]] = found[valid]
+
+    def _blocks(self, tris):
+        """The ``BLOCK x BLOCK`` blocks of cells that meet the triangles ``tris``: each block's
+        triangle ``bt`` and first cell ``(i0, j0)``, and its cells ``(i, j) (blocks, BLOCK²)``
+        with the mask ``valid`` of those that meet the triangle."""
+        B, gu = self.BLOCK, self.gu
+        # Blocks that meet the triangle: in block row I, those whose first cell is in row I*B.
+        brows = -(-gu[tris] // B)
+        row_t = np.repeat(tris, brows)
+        row_I = np.arange(len(row_t)) - np.repeat(np.cumsum(brows) - brows, brows)
+        per_row = -(-self._row_length(row_t, row_I * B) // B)
+        bt = np.repeat(row_t, per_row)
+        i0 = np.repeat(row_I, per_row) * B
+        j0 = (np.arange(len(bt)) - np.repeat(np.cumsum(per_row) - per_row, per_row)) * B
+        a = np.arange(B * B)
+        i = i0[:, None] + a // B                              # (blocks, B*B) cells
+        j = j0[:, None] + a % B
+        valid = i < gu[bt, None]
+        valid &= j < self._row_length(np.broadcast_to(bt[:, None], i.shape), np.minimum(i, gu[bt, None] - 1))
+        return bt, i0, j0, i, j, valid
+
+    def _nearest_candidates(self, o, tree, bt, centre, du, dv, dx):
+        """For blocks of object ``o`` (triangles ``bt``, centres ``centre``; cell offsets ``du,
+        dv`` and distances ``dx`` from the centre): the nearest candidate point of every cell,
+        -1 where it faces away, and whether that answer is certain (:meth:`_fill_blocks`)."""
+        k = min(self.BLOCK_CANDIDATES, tree.n)
+        e1, e2 = self.grid_edges()
+        q = np.hstack([centre, self.spacing[o] * self.face_normals[bt]])
+        dist, near = tree.query(q, k=k, workers=-1)
+        dist, near = dist.reshape(len(bt), 1, k), near.reshape(len(bt), 1, k)
+        rel = tree.data[near[:, 0]][..., :3] - centre[:, None, :]      # p - c
+        g1 = -2.0 * np.einsum("bkj,bj->bk", rel, e1[bt])[:, None, :]
+        g2 = -2.0 * np.einsum("bkj,bj->bk", rel, e2[bt])[:, None, :]
+        score = dist ** 2 + du[:, :, None] * g1 + dv[:, :, None] * g2   # |p - x|² - |x - c|²
+        best = np.argmin(score, axis=2)[..., None]
+        d_best = np.sqrt(np.maximum(np.take_along_axis(score, best, axis=2)[..., 0] + dx ** 2, 0.0))
+        sure = (k == tree.n) | (d_best + dx < dist[:, :, -1] * (1.0 - 1e-9))
+        ids = self.index[o][np.take_along_axis(near, best, axis=2)[..., 0]]
+        facing = np.einsum("bcj,bj->bc", self.normals[ids], self.face_normals[bt]) > 0.0
+        return np.where(facing, ids, -1), sure
 
     def locate_front(self, tri, u, v, positions=None, workers=-1):
         """Nearest compatible point for front-face hits on ``tri`` with barycentrics ``(u, v)``."""

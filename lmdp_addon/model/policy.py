@@ -1,4 +1,4 @@
-"""Optimal policy and cost-to-go (thesis eq. 2.23 / 3.2 and 2.24).
+"""Optimal policy (thesis eq. 2.23 / 3.2); the cost-to-go (2.24) is ``Solution.cost_to_go``.
 
 ``u*(x'|x) = p(x'|x) z(x') / Σ_x'' p(x''|x) z(x'')`` is evaluated on the rescaled solution:
 for state i every weight is multiplied by ``exp(δ_i - c̄)``, which makes the weights
@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from .costs import scalar_desirability
 
 
-def _column_weights(solution, n_points):
+def _column_weights(solution):
     """Scalar ``y`` per column (points then terminals) and the column log-scale ``δ``."""
     y = scalar_desirability(solution.y)
     zt = scalar_desirability(solution.z_terminal)
@@ -21,10 +21,10 @@ def _column_weights(solution, n_points):
     return values, delta
 
 
-def _scaled_entries(matrix, row_point, solution, n_points):
+def _scaled_entries(matrix, row_point, solution):
     """``p_ij z_j`` of a CSR matrix rescaled per row by ``exp(δ_i - c̄)`` (finite, exact ratios)."""
     matrix = sp.csr_matrix(matrix)
-    values, col_delta = _column_weights(solution, n_points)
+    values, col_delta = _column_weights(solution)
     rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
     cols = matrix.indices
     row_delta = solution.delta[row_point[rows]]
@@ -41,7 +41,7 @@ def optimal_policy(lmdp, solution):
     """
     P = sp.csr_matrix(lmdp.P)
     m = P.shape[0]
-    rows, cols, w = _scaled_entries(P, np.arange(m), solution, m)
+    rows, cols, w = _scaled_entries(P, np.arange(m), solution)
     sums = np.bincount(rows, weights=w, minlength=m)
     passive = sums <= 0
     p_sums = np.asarray(P.sum(axis=1)).reshape(-1)
@@ -77,15 +77,10 @@ def stratum_policy(dynamics, solution, columns="all"):
     elif columns != "all":
         raise ValueError(f"columns must be 'all', 'points' or 'points+world', not {columns!r}")
     row_point = np.repeat(np.arange(m), S)
-    rows, _, w = _scaled_entries(Pk, row_point, solution, m)
+    rows, _, w = _scaled_entries(Pk, row_point, solution)
     per_stratum = np.bincount(rows, weights=w, minlength=m * S).reshape(m, S)
     sums = per_stratum.sum(axis=1, keepdims=True)
     weights = np.asarray(dynamics.stratum_transitions.sum(axis=1)).reshape(m, S)
     passive = weights / np.maximum(weights.sum(axis=1, keepdims=True), 1e-300)
     u = np.where(sums > 0, per_stratum / np.where(sums > 0, sums, 1.0), passive)
     return u.astype(np.float64)
-
-
-def cost_to_go(solution):
-    """J = -(log z)/λ per state and channel (+inf where z = 0); see ``design.md``."""
-    return solution.cost_to_go

@@ -80,7 +80,8 @@ class Solution:
 
     @property
     def cost_to_go(self):
-        """J = -(log z)/λ (our convention for the thesis's Q = exp(-λ g); +inf where z = 0)."""
+        """J = -(log z)/λ (thesis eq. 2.24 in our convention for its Q = exp(-λ g), see
+        ``design.md``; +inf where z = 0)."""
         return -self.log_z / self.lambda_
 
     def summary(self):
