@@ -163,7 +163,7 @@ def main(argv=None):
     import bpy
     demo = importlib.import_module(module + ".operators.adapters.demo_scenes")
     extract = importlib.import_module(module + ".operators.adapters.extract")
-    from lmdp_addon.bake import driver as baking
+    from lmdp_addon.bake import checks, driver as baking
     from lmdp_addon.model import pipeline
     from lmdp_addon.settings import Settings
 
@@ -175,10 +175,10 @@ def main(argv=None):
     scene.cycles.sample_clamp_indirect = 0.0
     obj = bpy.data.objects[receiver]
     arrays = extract.extract_scene(bpy.context, carriers)
-    ref_a, ref_b, ref_seconds = reference(demo, obj, args, baking.scene_fingerprint(arrays))
+    ref_a, ref_b, ref_seconds = reference(demo, obj, args, checks.scene_fingerprint(arrays))
     ref = (ref_a[..., :3] + ref_b[..., :3]) / 2.0
     var_ref = (ref_a[..., :3] - ref_b[..., :3]) ** 2 / 4.0
-    ts, _ = baking.object_texels(arrays, arrays.object_names.index(receiver), args.resolution)
+    ts, _ = checks.object_texels(arrays, arrays.object_names.index(receiver), args.resolution)
     covered = ref_a[..., 0] >= 0
     mismatch = int(np.count_nonzero(covered != ts.covered_mask()))
 

@@ -9,7 +9,7 @@ each mode and prints, for a B x B grid of blocks of its lightmap (top row = top 
 square), 100 (Σ bake / Σ reference − 1) over the texels that both cover, in luminance. A block
 where Cycles finds (almost) no light and the bake does is printed as ``LEAK``: light where there
 should be none, such as texels under a box standing on the floor that gathered the light of the
-room (the bug that `tracer.GatherField` now avoids). Blocks with too little reference light to
+room (the bug that `gather.GatherField` now avoids). Blocks with too little reference light to
 give a ratio are ``.``. UNGUIDED and GUIDED are unbiased, so their blocks show the noise level.
 
 Below each map the bias is split by where the texels sit (``contact_classes``): *covered*

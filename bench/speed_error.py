@@ -12,7 +12,7 @@ For each case (scene, receiver object, resolution, path length):
    scene's geometry and of ``operators/adapters/demo_scenes.py``. Its noise is estimated from the halves
    (``metrics.reference_noise``).
 3. Scored texels: covered in Cycles' reference and in the engine's rasterisation
-   (``baking.object_texels``; the two masks are compared and the difference reported) and facing
+   (``checks.object_texels``; the two masks are compared and the difference reported) and facing
    up (normal z > 0.5: the floor's top, not the sides or underside of a floor slab).
 4. Every method runs its ladder of sample counts ``repeats`` times (seeds 100, 101, ...; the
    repeat loop is outermost so that slow drifts of the machine spread over all methods). Times are
@@ -139,9 +139,9 @@ def load_or_bake_reference(case, cache_dir):
 
 def scored_texels(case, ref_a, ref_b):
     """Rows and columns of the scored texels, with the coverage comparison (module docstring)."""
-    from lmdp_addon.bake import driver as baking
+    from lmdp_addon.bake import checks
     index = case.scene.object_names.index(case.receiver)
-    texels, _ = baking.object_texels(case.scene, index, case.resolution)
+    texels, _ = checks.object_texels(case.scene, index, case.resolution)
     engine_mask = texels.covered_mask()
     cycles_mask = (ref_a[..., 3] != SENTINEL) & (ref_b[..., 3] != SENTINEL)
     up = np.zeros_like(engine_mask)

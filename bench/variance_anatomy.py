@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lmdp_addon.bake import driver as baking  # noqa: E402
+from lmdp_addon.bake.guide import build_guide  # noqa: E402
 from lmdp_addon.model import pipeline  # noqa: E402
 from lmdp_addon import demo_geometry as scenes  # noqa: E402
 from lmdp_addon.settings import Settings  # noqa: E402
@@ -48,7 +48,7 @@ def receiver_points(scene, name, n, rng):
 
 def relative_variance(scene, points, normals, paths, bounces, rng, tail=None, guide=None, obj=-1):
     """(mean, variance per path / mean²) of the luminance of UNGUIDED estimates at ``points``
-    (GUIDED with a ``tracer.StateGuide`` ``guide``; ``obj``: the receiver's object index);
+    (GUIDED with a ``guide.StateGuide`` ``guide``; ``obj``: the receiver's object index);
     with ``tail`` = q also the share of the variance that the largest fraction q of the paths
     carry (squared deviations from their point's mean)."""
     n = len(points)
@@ -96,7 +96,7 @@ def _guided_line(scene, name, points, normals, paths, rng, unguided, light=""):
     """The GUIDED counterpart of the last UNGUIDED line (8 bounces), as one printed line."""
     settings = Settings()
     lmdp = pipeline.run_all(scene, settings)
-    guide = baking.build_guide(scene, lmdp)
+    guide = build_guide(scene, lmdp)
     mean, rv, share = relative_variance(scene, points, normals, paths, 8, rng, tail=TAIL, guide=guide,
                                         obj=scene.object_names.index(name))
     return _line(f"{light}GUIDED ({settings.point_count} states), 8 bounces", mean, rv, share,

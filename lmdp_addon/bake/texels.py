@@ -48,6 +48,8 @@ class TexelSet:
     pixel_barycentric_derivatives  (n, 2, 2): d(b1, b2)/d(x, y) of Cycles' bake differentials
         (half the true derivative, see the module doc); rows: b1, b2; columns: x, y
     triangle_corners, triangle_normals: the arrays the texels were computed from (not copied)
+    overlap       (n,) bool: the texel's centre is covered by more than one triangle (overlapping
+        UVs; the last triangle wins, like Blender), or None when not known (a subset)
     """
 
     resolution: int
@@ -60,6 +62,7 @@ class TexelSet:
     pixel_barycentric_derivatives: np.ndarray
     triangle_corners: np.ndarray
     triangle_normals: np.ndarray
+    overlap: np.ndarray = None
 
     def __len__(self):
         return len(self.row)
@@ -135,7 +138,8 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
     triangle_corners  (T, 3, 3) world positions of the corners (metres)
     triangle_normals  (T, 3) face normals, or (T, 3, 3) corner normals (smooth shading)
     resolution        R: image width = height in pixels
-    Returns a :class:`TexelSet` sorted by pixel (row-major from the bottom row).
+    Returns a :class:`TexelSet` sorted by pixel (row-major from the bottom row), with
+    ``overlap`` marking the texels whose centre several triangles cover.
     """
     R = int(resolution)
     if R <= 0:
@@ -143,6 +147,22 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
     corners = np.asarray(triangle_corners, dtype=np.float64).reshape(-1, 3, 3)
     T = len(corners)
     p = _shifted_pixel_coords(np.asarray(triangle_uv).reshape(T, 3, 2), R)
+    x0, y0, count, width = _pixel_boxes(p, R)
+    e_from, e_to, e_sign, sign, strict = _edge_functions(p)
+    count[sign == 0] = 0  # degenerate in UV: Blender skips it (z0 == 0)
+    row, col, triangle, bary = _covered_candidates(x0, y0, count, width, e_from, e_to, e_sign, strict,
+                                                   max_candidates)
+    row, col, triangle, bary, overlap = _last_triangle_wins(row, col, triangle, bary, R)
+    position = np.einsum("nk,nkj->nj", bary, corners[triangle])
+    normal = _interpolate_normals(triangle_normals, triangle, bary)
+    derivs = _bake_differentials(p)[triangle]
+    return TexelSet(R, row, col, triangle, bary, position, normal, derivs, corners,
+                    np.asarray(triangle_normals), overlap)
+
+
+def _pixel_boxes(p, R):
+    """``(x0, y0, count, width)``: the first column and row, the number of pixels and the width
+    of each triangle's pixel bounding box (clipped to the image; 0 pixels if not finite)."""
     finite = np.all(np.isfinite(p), axis=(1, 2))
     pmin = np.where(finite[:, None], p.min(axis=1), 0.0)
     pmax = np.where(finite[:, None], p.max(axis=1), -1.0)
@@ -154,15 +174,21 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
     height = np.maximum(y1 - y0 + 1, 0).astype(np.int64)
     count = width * height
     count[~finite] = 0
+    return x0, y0, count, width
 
-    # Edge functions oriented so that the interior is positive; ``strict`` marks left edges.
+
+def _edge_functions(p):
+    """``(e_from, e_to, e_sign, sign, strict)`` of the triangles' three edges in pixel space:
+    edge functions oriented so that the interior is positive; ``strict`` marks left edges.
+
+    Edge k is opposite corner k: from corner k+1 to corner k+2. Each edge is evaluated from its
+    endpoints in a canonical (y, x) order, so a shared edge gives exactly opposite values in its
+    two triangles and a texel point on it is covered exactly once. ``sign``: the sign of the
+    triangle's UV area (0: degenerate).
+    """
     a, b, c = p[:, 0], p[:, 1], p[:, 2]
     area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
     sign = np.sign(area2)
-    count[sign == 0] = 0  # degenerate in UV: Blender skips it (z0 == 0)
-    # Edge k is opposite corner k: from corner k+1 to corner k+2. Each edge is evaluated from
-    # its endpoints in a canonical (y, x) order, so a shared edge gives exactly opposite values
-    # in its two triangles and a texel point on it is covered exactly once.
     e_from = p[:, [1, 2, 0]]
     e_to = p[:, [2, 0, 1]]
     swap = (e_from[..., 1] > e_to[..., 1]) | ((e_from[..., 1] == e_to[..., 1]) & (e_from[..., 0] > e_to[..., 0]))
@@ -170,12 +196,17 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
     e_sign = sign[:, None] * np.where(swap, -1.0, 1.0)  # orients each edge's interior positive
     e_dy = e_to[..., 1] - e_from[..., 1]
     strict = (e_sign * -e_dy) > 0  # interior at larger x: a left edge, exclusive
+    return e_from, e_to, e_sign, sign, strict
 
+
+def _covered_candidates(x0, y0, count, width, e_from, e_to, e_sign, strict, max_candidates):
+    """``(row, col, triangle, barycentric)`` of every (triangle, pixel) whose texel point the
+    triangle covers, in triangle order. The candidates (each triangle's bounding-box pixels) are
+    tested in chunks of at most ``max_candidates``, so memory stays bounded whatever the
+    triangle sizes."""
     rows, cols, tris, barys = [], [], [], []
     starts = np.concatenate([[0], np.cumsum(count)])
     total = int(starts[-1])
-    # Candidates (triangle, pixel of its bounding box) in chunks of at most max_candidates, so
-    # memory stays bounded whatever the triangle sizes.
     for k0 in range(0, total, int(max_candidates)):
         k = np.arange(k0, min(k0 + int(max_candidates), total))
         t_idx = np.searchsorted(starts, k, side="right") - 1
@@ -196,30 +227,26 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
         cols.append(px[inside].astype(np.int32))
         tris.append(t_idx[inside].astype(np.int64))
         barys.append(e / e.sum(axis=1, keepdims=True))
+    if not rows:
+        return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros((0, 3))
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(tris), np.concatenate(barys)
 
-    if rows:
-        row = np.concatenate(rows)
-        col = np.concatenate(cols)
-        triangle = np.concatenate(tris)
-        bary = np.concatenate(barys)
-        # Later triangles overwrite earlier ones (Blender rasterises in triangle order).
-        flat = row.astype(np.int64) * R + col
-        order = np.lexsort((triangle, flat))
-        flat_sorted = flat[order]
-        last = np.ones(len(order), dtype=bool)
-        last[:-1] = flat_sorted[1:] != flat_sorted[:-1]
-        keep = order[last]
-        row, col, triangle, bary = row[keep], col[keep], triangle[keep], bary[keep]
-    else:
-        row = col = np.zeros(0, np.int32)
-        triangle = np.zeros(0, np.int64)
-        bary = np.zeros((0, 3))
 
-    position = np.einsum("nk,nkj->nj", bary, corners[triangle])
-    normal = _interpolate_normals(triangle_normals, triangle, bary)
-    derivs = _bake_differentials(p)[triangle]
-    return TexelSet(R, row, col, triangle, bary, position, normal, derivs, corners,
-                    np.asarray(triangle_normals))
+def _last_triangle_wins(row, col, triangle, bary, R):
+    """One texel per covered pixel, sorted by pixel: where several triangles cover a pixel's
+    texel point the last one wins (Blender rasterises in triangle order). Also returns
+    ``overlap (n,)`` bool: the pixels covered by more than one triangle (a triangle covers
+    each pixel of its box at most once, so a repeated pixel is a second triangle)."""
+    flat = row.astype(np.int64) * R + col
+    order = np.lexsort((triangle, flat))
+    flat_sorted = flat[order]
+    last = np.ones(len(order), dtype=bool)
+    last[:-1] = flat_sorted[1:] != flat_sorted[:-1]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = flat_sorted[1:] != flat_sorted[:-1]
+    keep = order[last]
+    overlap = ~first[last]
+    return row[keep], col[keep], triangle[keep], bary[keep], overlap
 
 
 #: Jitter attempts before Cycles falls back to the texel point (init_from_bake.h).

@@ -1,15 +1,15 @@
-"""Bake orchestration (lmdp_addon.bake.driver): texels, batches, determinism, errors, cancellation."""
+"""The bake (lmdp_addon.bake.driver): images and stats, batches and work units, determinism,
+standard errors, cancellation, and the build's BVH."""
 import numpy as np
 import pytest
 
 from lmdp_addon.bake import driver as baking
 from lmdp_addon.model import pipeline
 from lmdp_addon import demo_geometry as scenes
-from lmdp_addon.errors import Cancelled, SceneError, StageOrderError
+from lmdp_addon.errors import Cancelled
 from lmdp_addon.progress import Progress
 from lmdp_addon.raycast import RayCaster
 from lmdp_addon.settings import Settings
-from lmdp_addon.bake.texels import rasterize_texels
 
 
 @pytest.fixture(scope="module")
@@ -26,35 +26,6 @@ def small(**kw):
     base = dict(bake_mode="UNGUIDED", bake_resolution=16, bake_samples=8, bake_margin=2)
     base.update(kw)
     return Settings(**base)
-
-
-def test_texels_are_the_texels_module_on_the_object_triangles(cornell):
-    index = cornell.object_names.index("TallBox")
-    ts, tris = baking.object_texels(cornell, index, 32)
-    normals, _ = cornell.triangle_geometry()
-    mask = cornell.triangle_object == index
-    ref = rasterize_texels(cornell.triangle_uv[mask], cornell.corners()[mask], normals[mask], 32)
-    np.testing.assert_array_equal(ts.row, ref.row)
-    np.testing.assert_array_equal(ts.col, ref.col)
-    np.testing.assert_allclose(ts.position, ref.position)
-    assert np.all(cornell.triangle_object[tris[ts.triangle]] == index)
-
-
-def test_the_bake_reuses_the_texels_its_input_check_rasterised(cornell, monkeypatch):
-    """Two rasterisations per object (the overlap check's two triangle orders), not three; past
-    TEXEL_CACHE_LIMIT an object is rasterised again when baked, with the same result."""
-    calls = []
-    original = baking.rasterize_texels
-    monkeypatch.setattr(baking, "rasterize_texels", lambda *a, **k: calls.append(1) or original(*a, **k))
-    names = ["Floor", "TallBox"]
-    cached = baking.bake(cornell, names, small())
-    assert len(calls) == 2 * len(names)
-    calls.clear()
-    monkeypatch.setattr(baking, "TEXEL_CACHE_LIMIT", 0)
-    again = baking.bake(cornell, names, small())
-    assert len(calls) == 3 * len(names)
-    for a, b in zip(cached.objects, again.objects):
-        np.testing.assert_array_equal(a.image, b.image)
 
 
 def test_bake_image_layout_margin_and_stats(cornell):
@@ -132,17 +103,6 @@ def test_work_units_cover_every_batch_of_every_texel_once(n_texels, samples):
         assert group > 1    # small batches share units
 
 
-def test_stratified_first_uniforms_are_stratified():
-    rng = np.random.default_rng(0)
-    u, mix = baking.stratified_first_uniforms(3, 16, rng)
-    assert u.shape == (3, 16, 2) and mix.shape == (3, 16)
-    for t in range(3):
-        # one sample in each of the 16 columns and each of the 16 rows of the unit square
-        assert len(np.unique(np.floor(u[t, :, 0] * 16))) == 16
-        assert len(np.unique(np.floor(u[t, :, 1] * 16))) == 16
-    np.testing.assert_allclose(baking.radical_inverse2([0, 1, 2, 3, 5]), [0, 0.5, 0.25, 0.75, 0.625])
-
-
 class CancelAfter(Progress):
     def __init__(self, n):
         super().__init__()
@@ -160,83 +120,6 @@ def test_cancel_stops_between_work_units(cornell, monkeypatch):
     with pytest.raises(Cancelled):
         baking.bake(cornell, ["Floor"], small(bake_resolution=32), progress=progress)
     assert progress.calls == 4
-
-
-# -- bad input ---------------------------------------------------------------------------------------
-
-def test_bad_resolution_samples_and_bounces(cornell):
-    with pytest.raises(SceneError, match="resolution must be at least 1"):
-        baking.check_bake_inputs(cornell, ["Floor"], small(bake_resolution=0))
-    with pytest.raises(SceneError, match="samples must be at least 1"):
-        baking.check_bake_inputs(cornell, ["Floor"], small(bake_samples=0))
-    with pytest.raises(SceneError, match="bounces"):
-        baking.check_bake_inputs(cornell, ["Floor"], small(max_bounces=0))
-
-
-def test_missing_uv_map_names_the_objects(cornell):
-    scene = scenes.build_scene_arrays("CORNELL_BOX")
-    scene.object_has_uv[[0, 5]] = False
-    with pytest.raises(SceneError, match=r"No UV map on Floor, TallBox: add one"):
-        baking.check_bake_inputs(scene, ["Floor", "TallBox", "Ceiling"], small())
-
-
-def overlapping(scene, name):
-    """Give every face of ``name`` the same chart: all its UVs overlap."""
-    scene = scenes.build_scene_arrays("CORNELL_BOX")
-    mask = scene.triangle_object == scene.object_names.index(name)
-    uv = scene.triangle_uv[mask]
-    quad = np.array([[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]]], np.float32)
-    scene.triangle_uv[mask] = np.tile(quad, (len(uv) // 2, 1, 1))
-    return scene
-
-
-def test_overlapping_uvs_are_detected_and_named(cornell):
-    scene = overlapping(cornell, "TallBox")
-    count, example = baking.uv_overlaps(scene, scene.object_names.index("TallBox"), 16)
-    assert count == 256 and example is not None
-    with pytest.raises(SceneError, match=r"Overlapping UVs on TallBox \(256 texels"):
-        baking.check_bake_inputs(scene, ["Floor", "TallBox"], small())
-
-
-@pytest.mark.parametrize("name", ["Floor", "TallBox", "ShortBox", "LeftWall"])
-def test_demo_charts_do_not_overlap(cornell, name):
-    for R in (16, 64, 128):
-        assert baking.uv_overlaps(cornell, cornell.object_names.index(name), R)[0] == 0
-
-
-def test_uvs_outside_the_image_are_an_error(cornell):
-    scene = scenes.build_scene_arrays("CORNELL_BOX")
-    mask = scene.triangle_object == 0
-    scene.triangle_uv[mask] += 5.0
-    with pytest.raises(SceneError, match="covers no texel"):
-        baking.check_bake_inputs(scene, ["Floor"], small())
-
-
-def test_no_light_is_an_error():
-    scene = scenes.build_scene_arrays("CORNELL_BOX")
-    scene.triangle_emission[:] = 0.0
-    with pytest.raises(SceneError, match="no light to bake"):
-        baking.check_bake_inputs(scene, ["Floor"], small())
-
-
-def test_guided_modes_need_a_solution(cornell, cornell_solved):
-    for mode in ("GUIDED", "FINAL_GATHER"):
-        with pytest.raises(StageOrderError, match="Solve first"):
-            baking.check_bake_inputs(cornell, ["Floor"], small(bake_mode=mode))
-    assert baking.check_bake_inputs(cornell, ["Floor"], small(bake_mode="GUIDED"), cornell_solved) == []
-
-
-def test_final_gather_needs_physical_mode_and_the_same_scene(cornell):
-    thesis = pipeline.run_all(cornell, Settings(point_count=256, cost_mode="THESIS"))
-    with pytest.raises(SceneError, match="PHYSICAL"):
-        baking.check_bake_inputs(cornell, ["Floor"], small(bake_mode="FINAL_GATHER"), thesis)
-    physical = pipeline.run_all(cornell, Settings(point_count=256))
-    moved = scenes.build_scene_arrays("CORNELL_BOX")
-    moved.vertices[moved.triangles[moved.triangle_object == 5]] += 0.01
-    with pytest.raises(SceneError, match="scene changed"):
-        baking.check_bake_inputs(moved, ["Floor"], small(bake_mode="FINAL_GATHER"), physical)
-    warnings = baking.check_bake_inputs(moved, ["Floor"], small(bake_mode="GUIDED"), physical)
-    assert any("scene changed" in w for w in warnings)
 
 
 def test_guided_bake_of_a_changed_scene_uses_exact_lookups(cornell_solved):
@@ -262,18 +145,3 @@ def test_guided_bake_traces_with_the_builds_bvh_only_when_the_geometry_is_the_sa
     moved = scenes.build_scene_arrays("CORNELL_BOX")
     moved.vertices[:, 2] += 1e-3
     assert baking.make_tracer(moved, settings, cornell_solved)[0].caster is not cornell_solved.dynamics.caster
-
-
-def test_objects_without_states_are_reported(cornell):
-    lmdp = pipeline.run_all(scenes.build_scene_arrays("CORNELL_BOX", selected=["Floor"]),
-                            Settings(point_count=128))
-    warnings = baking.check_bake_inputs(cornell, ["Floor", "TallBox"], small(bake_mode="GUIDED"), lmdp)
-    assert any("No states on TallBox" in w for w in warnings)
-
-
-def test_fingerprint_ignores_the_selection_only():
-    a = scenes.build_scene_arrays("CORNELL_BOX")
-    b = scenes.build_scene_arrays("CORNELL_BOX", selected=["Floor"])
-    assert baking.scene_fingerprint(a) == baking.scene_fingerprint(b)
-    b.triangle_albedo[0] *= 0.5
-    assert baking.scene_fingerprint(a) != baking.scene_fingerprint(b)

@@ -96,6 +96,7 @@ def test_shared_edges_through_texel_points_leave_no_hole_and_no_double():
     expected = inside_y[:, None] & inside_x[None, :]
     assert np.array_equal(ts.covered_mask(), expected)
     assert len(np.unique(ts.flat_index)) == len(ts) == expected.sum()
+    assert not ts.overlap.any()   # the shared edge covers its texel points once
 
 
 def test_the_last_of_overlapping_triangles_wins_like_blender():
@@ -137,6 +138,7 @@ def test_many_small_triangles_chunked_like_a_single_pass():
     assert len(whole) == 100 * 100
     assert np.array_equal(whole.flat_index, chunked.flat_index)
     assert np.array_equal(whole.triangle, chunked.triangle)
+    assert not whole.overlap.any() and not chunked.overlap.any()
     np.testing.assert_allclose(whole.position, chunked.position)
 
 

@@ -1,0 +1,194 @@
+"""Every check of a bake, run once before any work: :func:`check_bake` returns a :class:`BakePlan`.
+
+The checks raise :class:`~lmdp_addon.errors.SceneError` / :class:`~lmdp_addon.errors.StageOrderError`
+with messages written for the user; the plan carries what they computed (the objects' texels)
+to the bake, which then runs no check again (``driver.bake(..., plan=plan)``). The operators call
+:func:`check_bake` on Blender's main thread and hand the plan to the worker.
+"""
+import hashlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import SceneError, StageOrderError
+from ..settings import BAKE_MODES
+from .texels import rasterize_texels
+
+#: Most texels (summed over objects) whose rasterisation a :class:`BakePlan` keeps for the bake:
+#: about 120 B each (positions, normals, barycentrics, differentials), so at most ~120 MiB held
+#: between the check and the bake; objects beyond it are rasterised again when baked.
+TEXEL_CACHE_LIMIT = 1 << 20
+
+
+@dataclass
+class BakePlan:
+    """What :func:`check_bake` found: the bake of ``names`` can start.
+
+    names       object names to bake, in order
+    indices     their object indices in the scene
+    resolution  the lightmaps' R (``settings.bake_resolution``) the texels are for
+    texels      object index -> ``(TexelSet, triangles (T_o,))`` (:func:`object_texels`) of the
+                objects the check rasterised, up to :data:`TEXEL_CACHE_LIMIT` texels in all
+    warnings    messages for the user (the bake goes on)
+    """
+
+    names: list
+    indices: list
+    resolution: int
+    texels: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+
+
+def object_index(scene, name):
+    """Index of the object ``name`` in ``scene.object_names`` (SceneError if absent)."""
+    try:
+        return scene.object_names.index(name)
+    except ValueError:
+        raise SceneError(f"Object '{name}' is not part of the captured scene (is it hidden?)") from None
+
+
+def object_texels(scene, index, resolution):
+    """Texels of object ``index`` at ``resolution``: ``(TexelSet, triangles (T_o,))``.
+
+    ``triangles`` maps the TexelSet's local triangle indices to the scene's triangles.
+    """
+    tris = np.flatnonzero(scene.triangle_object == index)
+    normals, _ = scene.triangle_geometry()
+    ts = rasterize_texels(scene.triangle_uv[tris], scene.corners()[tris], normals[tris], resolution)
+    return ts, tris
+
+
+def uv_overlaps(scene, index, resolution, texels=None):
+    """Texels whose centre two or more of the object's UV triangles cover: ``(count, (row, col))``
+    of the first of them (None if none).
+
+    Shared edges cover a centre once, so adjacent triangles never count. ``texels``:
+    ``object_texels(scene, index, resolution)`` if the caller has it already.
+    """
+    ts, _ = texels if texels is not None else object_texels(scene, index, resolution)
+    count = int(np.count_nonzero(ts.overlap))
+    example = (int(ts.row[ts.overlap][0]), int(ts.col[ts.overlap][0])) if count else None
+    return count, example
+
+
+def scene_fingerprint(scene):
+    """Hash of the geometry, materials, world and object names of a SceneArrays (not the selection)."""
+    h = hashlib.blake2b(digest_size=16)
+    for array in (scene.vertices, scene.triangles, scene.triangle_object, scene.triangle_albedo,
+                  scene.triangle_emission, scene.triangle_emission_two_sided, scene.world_radiance):
+        h.update(np.ascontiguousarray(array).tobytes())
+    h.update("\0".join(scene.object_names).encode())
+    return h.hexdigest()
+
+
+def check_bake(scene, names, settings, lmdp=None, will_solve=False):
+    """Check a bake of the objects ``names`` of ``scene`` before any work; returns its :class:`BakePlan`.
+
+    Checks, in order: the mode, resolution, samples and bounces >= 1, a selection, every object
+    has a UV map, covers at least one texel and has no overlapping UVs, the scene has light,
+    GUIDED / FINAL_GATHER have a solution and FINAL_GATHER a PHYSICAL one of this very scene.
+    ``will_solve``: the caller solves this scene with ``settings`` before baking (Run All), so
+    only the cost mode is checked. Each object is rasterised once.
+    """
+    names = list(names)
+    R = _check_settings(settings, names)
+    indices = [object_index(scene, n) for n in names]
+    no_uv = [n for n, i in zip(names, indices) if not scene.object_has_uv[i]]
+    if no_uv:
+        raise SceneError(f"No UV map on {', '.join(no_uv)}: add one (UV > Smart UV Project or "
+                         "Lightmap Pack) or deselect them; the lightmap is laid out by the UV map")
+    texels = _check_texels(scene, names, indices, R)
+    if not scene.has_light():
+        raise SceneError("The scene has no light to bake: add an emissive material (Emission "
+                         "shader or Principled emission), an area light, or a non-black world")
+    warnings = _check_solution(scene, names, settings, lmdp, will_solve)
+    if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
+        warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
+                        "the optimal policy is zero; a value below 1 keeps it unbiased")
+    return BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings)
+
+
+def check_bake_inputs(scene, names, settings, lmdp=None, will_solve=False):
+    """The warnings of :func:`check_bake` (``operators/ops/bake.py`` calls this name until it
+    takes the plan; then this goes)."""
+    return check_bake(scene, names, settings, lmdp, will_solve).warnings
+
+
+def _check_settings(settings, names):
+    """The bake settings' errors; returns the resolution R."""
+    mode = settings.bake_mode
+    if mode not in BAKE_MODES:
+        raise SceneError(f"Unknown bake mode {mode!r}: use one of {', '.join(BAKE_MODES)}")
+    R = int(settings.bake_resolution)
+    if R < 1:
+        raise SceneError(f"Bake resolution must be at least 1 pixel (got {R}): set LMDP > Bake > Resolution")
+    if int(settings.bake_samples) < 1:
+        raise SceneError(f"Bake samples must be at least 1 (got {settings.bake_samples}): set LMDP > Bake > Samples")
+    if int(settings.max_bounces) < 1:
+        raise SceneError(f"Max bounces must be at least 1 for indirect light (got {settings.max_bounces})")
+    if not names:
+        raise SceneError("Select at least one mesh object to bake")
+    return R
+
+
+def _check_texels(scene, names, indices, R):
+    """Rasterise every object once: objects that cover no texel or have overlapping UVs are
+    errors. Returns the texels kept for the bake (:data:`TEXEL_CACHE_LIMIT`)."""
+    texels, kept = {}, 0
+    empty, overlapping = [], []
+    for n, i in zip(names, indices):
+        found = object_texels(scene, i, R)
+        ts, _ = found
+        if kept + len(ts) <= TEXEL_CACHE_LIMIT:
+            texels[i] = found
+            kept += len(ts)
+        count, example = uv_overlaps(scene, i, R, found)
+        if len(ts) == 0:
+            empty.append(n)
+        elif count:
+            overlapping.append(f"{n} ({count} texels, e.g. column {example[1]}, row {example[0]})")
+    if empty:
+        raise SceneError(f"The UV map of {', '.join(empty)} covers no texel centre of a {R} x {R} "
+                         "image (UVs outside [0, 1] or degenerate): unwrap into the unit square")
+    if overlapping:
+        raise SceneError(f"Overlapping UVs on {'; '.join(overlapping)}: several faces share these "
+                         f"texels of the {R} x {R} lightmap. Give each face its own area "
+                         "(UV > Lightmap Pack, or Smart UV Project) and bake again")
+    return texels
+
+
+def _check_solution(scene, names, settings, lmdp, will_solve):
+    """The stage-order and solution checks of the guided modes; returns their warnings."""
+    warnings = []
+    mode = settings.bake_mode
+    if will_solve:
+        if mode == "FINAL_GATHER" and settings.cost_mode != "PHYSICAL":
+            raise SceneError("Final Gather reads the outgoing radiance z of the PHYSICAL cost mode: "
+                             f"set Cost Mode to Physical (it is {settings.cost_mode}), or bake with "
+                             "Guided or Unguided")
+        return warnings
+    if mode not in ("GUIDED", "FINAL_GATHER"):
+        return warnings
+    if lmdp is None or lmdp.solution is None:
+        raise StageOrderError(f"Solve first (LMDP panel > Solve): {mode} bakes are guided by "
+                              "the optimal policy of the solved states; or use bake mode Unguided")
+    same = scene_fingerprint(scene) == scene_fingerprint(lmdp.scene)
+    if mode == "FINAL_GATHER":
+        if lmdp.solution.cost_mode != "PHYSICAL":
+            raise SceneError("Final Gather reads the outgoing radiance z of the PHYSICAL cost "
+                             f"mode, but the solution was computed in {lmdp.solution.cost_mode} "
+                             "mode: set Cost Mode to Physical and run the pipeline again")
+        if not same:
+            raise SceneError("The scene changed since the states were sampled: Final Gather would "
+                             "read the old solution at the new surfaces. Run the pipeline again "
+                             "(LMDP > Run All), or bake with Guided or Unguided")
+    elif not same:
+        warnings.append("The scene changed since the states were sampled: the bake traces the "
+                        "current scene, guided by the old optimal policy (still unbiased, but "
+                        "less effective). Run the pipeline again for the best guide")
+    carried = set(np.asarray(lmdp.scene.object_names)[lmdp.states.point_object].tolist())
+    unguided = [n for n in names if n not in carried]
+    if unguided:
+        warnings.append(f"No states on {', '.join(unguided)}: their texels start with cosine "
+                        "sampling (select them when sampling to guide them too)")
+    return warnings

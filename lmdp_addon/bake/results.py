@@ -1,0 +1,115 @@
+"""The results of a bake: one :class:`ObjectBake` lightmap per object in a :class:`BakeResult`,
+and the plain dict of ``bake_stats.json`` (:meth:`BakeResult.stats`)."""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .tracer import TraceStats
+
+#: Suffix of the images the add-on writes.
+IMAGE_SUFFIX = "_lmdp_indirect"
+
+
+@dataclass
+class ObjectBake:
+    """The lightmap of one object.
+
+    name            object name; the image is ``name + IMAGE_SUFFIX``
+    texels          :class:`~lmdp_addon.bake.texels.TexelSet` (covered texels, Cycles' mapping)
+    triangles       (T_o,) the scene triangle of each of the object's local triangle indices
+    value           (n, 3) float32 estimate of E_ind/π per covered texel (W / sr m²)
+    standard_error  (n, 3) float32 standard error of ``value`` from the batch means (NaN for 1 batch)
+    image           (R, R, 4) float32 RGBA, margin filled, alpha 1 where filled; row 0 = bottom
+    samples         paths per texel; batches: independent batches they were split into
+    stats           :class:`~lmdp_addon.bake.tracer.TraceStats`
+    seconds         wall time of this object's bake
+    """
+
+    name: str
+    texels: object
+    triangles: np.ndarray
+    value: np.ndarray
+    standard_error: np.ndarray
+    image: np.ndarray
+    samples: int
+    batches: int
+    stats: TraceStats
+    seconds: float
+
+    @property
+    def image_name(self):
+        return self.name + IMAGE_SUFFIX
+
+    @property
+    def n_texels(self):
+        return len(self.texels)
+
+    @property
+    def resolution(self):
+        return self.texels.resolution
+
+
+@dataclass
+class BakeResult:
+    """Lightmaps of the baked objects plus what produced them (``bake_stats.json``)."""
+
+    mode: str
+    objects: list
+    settings: dict
+    seconds: dict = field(default_factory=dict)   #: stage -> wall time: sample, build, solve, bake
+    warnings: list = field(default_factory=list)
+    guide_info: dict = field(default_factory=dict)
+
+    @property
+    def n_texels(self):
+        return sum(o.n_texels for o in self.objects)
+
+    def object(self, name):
+        for o in self.objects:
+            if o.name == name:
+                return o
+        raise KeyError(name)
+
+    def summary(self):
+        rays = sum(o.stats.total_rays for o in self.objects)
+        secs = sum(o.seconds for o in self.objects)
+        return (f"{self.mode} bake of {len(self.objects)} object(s), {self.n_texels} texels x "
+                f"{self.settings.get('bake_samples')} samples, {rays} rays in {secs:.2f} s")
+
+    def stats(self):
+        """Plain dict for ``bake_stats.json``."""
+        objects = {}
+        for o in self.objects:
+            rays = o.stats.total_rays
+            objects[o.name] = {
+                "image": o.image_name,
+                "resolution": o.resolution,
+                "texels": o.n_texels,
+                "samples": o.samples,
+                "batches": o.batches,
+                "paths": o.stats.paths,
+                "rays": rays,
+                "closest_hit_rays": o.stats.rays,
+                "shadow_rays": o.stats.shadow_rays,
+                "rays_per_second": rays / o.seconds if o.seconds > 0 else None,
+                "trace": o.stats.as_dict(),
+                "mean": [float(x) for x in o.value.mean(axis=0)] if o.n_texels else [0.0, 0.0, 0.0],
+                "mean_relative_standard_error": _relative_error(o),
+                "seconds": {**{k: v for k, v in self.seconds.items() if k != "bake"}, "bake": o.seconds},
+            }
+        return {
+            "mode": self.mode,
+            "settings": dict(self.settings),
+            "seconds": dict(self.seconds),
+            "guide": dict(self.guide_info),
+            "objects": objects,
+            "warnings": list(self.warnings),
+        }
+
+
+def _relative_error(o):
+    """RMS standard error over the texels divided by the mean value (luminance-free: all channels)."""
+    if o.n_texels == 0 or not np.all(np.isfinite(o.standard_error)):
+        return None
+    mean = float(o.value.mean())
+    return float(np.sqrt(np.mean(o.standard_error.astype(np.float64) ** 2)) / mean) if mean > 0 else None
