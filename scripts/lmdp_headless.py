@@ -376,27 +376,28 @@ def lightmap_picture(extension, scene, path, steps):
     its ``<object>_lmdp_indirect`` image, i.e. E_ind/π as baked, no albedo), rendered like the z
     picture; the materials are restored afterwards. None when nothing was baked."""
     import bpy
-    ops_bake = submodule(extension, "operators.ops.bake")
-    baked = [(obj, ops_bake.own_image(obj.name)) for obj in scene.objects if obj.type == 'MESH']
+    lightmaps = submodule(extension, "operators.adapters.lightmaps")
+    materials = submodule(extension, "operators.adapters.materials")
+    baked = [(obj, lightmaps.own_image(obj.name)) for obj in scene.objects if obj.type == 'MESH']
     baked = [(obj, image) for obj, image in baked if image is not None]
     if not baked:
         return None
     for obj, image in baked:
-        ops_bake.hook_preview(obj, image)
+        materials.hook_preview(obj, image)
     _hide_generated("policy", True)
     _hide_generated("probe", True)
     try:
         return render_picture(scene, path, PICTURE_SAMPLES["z"], steps)
     finally:
         for obj, _image in baked:
-            ops_bake.unhook_preview(obj)
+            materials.unhook_preview(obj)
         _hide_generated("policy", False)
         _hide_generated("probe", False)
 
 
 def scene_size(extension, scene):
     """Bounding-box diagonal of the captured scene over sqrt(3) (1 m for the Cornell box)."""
-    arrays = submodule(extension, "operators.session").peek(scene).get("scene_arrays")
+    arrays = submodule(extension, "operators.session").peek(scene).get("scene")
     return arrays.bounding_diagonal() / 3 ** 0.5 if arrays is not None else 1.0
 
 

@@ -30,7 +30,7 @@ from ...lmdp_addon.model.policy import optimal_policy, stratum_policy
 from ...lmdp_addon.model.solvers import state_residuals
 from ..adapters import display_data as data
 from ..common import report_error, selected_meshes
-from ..jobs import EngineJob
+from ..jobs import EngineJob, ready
 from ..session import format_seconds, peek, session_for
 
 #: log10 of the smallest normal float32: attributes cannot hold smaller z.
@@ -228,13 +228,17 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
         default=True,
     )
 
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, selection=True, stage="solution")
+
     def prepare(self, context):
         selected_meshes(context)
         session = session_for(context.scene)
         solution = session.require("solution")
         states = session.require("states")
-        scene_arrays = session.require("scene_arrays")
-        lmdp = session.require("costs")
+        scene_arrays = session.require("scene")
+        lmdp = session.require("lmdp")
         props = context.scene.lmdp
         targets, skipped = display_targets(context, scene_arrays, states)
         if not targets:
@@ -259,8 +263,8 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
                            if cache.get(obj.name, (None,))[0] == key else None})
         # Buried states (inside or pressed against other geometry: locator.buried_points) get no
         # light; they colour no vertex, or the floor beside a box would darken towards it.
-        locator = getattr(session.get("dynamics"), "locator", None)
-        shown = getattr(locator, "targets", None)
+        locator = session.require("dynamics").locator
+        shown = locator.targets if locator is not None else None
         state_objects = states.point_object if shown is None else np.where(shown, states.point_object, -1)
         # apply() needs these too (the jobs protocol hands it only compute's result).
         self._inputs = {"targets": inputs, "skipped": skipped, "states": states, "solution": solution,
@@ -399,13 +403,17 @@ class LMDP_OT_show_policy(EngineJob, bpy.types.Operator):
         default=False,
     )
 
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, selection=True, stage="solution")
+
     def prepare(self, context):
         meshes = selected_meshes(context)
         session = session_for(context.scene)
         solution = session.require("solution")
         dynamics = session.require("dynamics")
         states = session.require("states")
-        names = session.require("scene_arrays").object_names
+        names = session.require("scene").object_names
         props = context.scene.lmdp
         if props.policy_subset == 'ACTIVE_OBJECT':
             active = context.view_layer.objects.active
@@ -493,6 +501,10 @@ class LMDP_OT_probe_policy(EngineJob, bpy.types.Operator):
         name="As Mesh", description="Also create (or replace) the object 'LMDP Probe' (arrows and "
                                     "next-state markers as a mesh that renders)", default=False)
 
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, stage="solution")
+
     def invoke(self, context, event):
         if self.pick and not bpy.app.background and getattr(context, "area", None) is not None \
                 and context.area.type == 'VIEW_3D':
@@ -527,10 +539,10 @@ class LMDP_OT_probe_policy(EngineJob, bpy.types.Operator):
         location = np.array(context.scene.cursor.location if self.use_cursor else self.location, dtype=np.float64)
         scale = self.arrow_scale if self.arrow_scale > 0 else context.scene.lmdp.policy_arrow_scale
         self._inputs = {"states": session.require("states"), "dynamics": session.require("dynamics"),
-                        "lmdp": session.require("costs"), "solution": solution, "location": location,
+                        "lmdp": session.require("lmdp"), "solution": solution, "location": location,
                         "scale": scale, "longest": self.arrow_scale <= 0,
                         "next_states": self.next_states, "as_mesh": self.as_mesh,
-                        "names": session.require("scene_arrays").object_names,
+                        "names": session.require("scene").object_names,
                         "view": session.get("policy")}
         return self._inputs
 

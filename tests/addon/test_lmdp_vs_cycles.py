@@ -41,7 +41,7 @@ def test_refinement_converges_towards_cycles(lmdp_ext, fresh_scene):
         s.point_count = points
         assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
         sess = session.session_for(fresh_scene)
-        arrays, states, sol = sess.require("scene_arrays"), sess.require("states"), sess.require("solution")
+        arrays, states, sol = sess.require("scene"), sess.require("states"), sess.require("solution")
         tex = floor_texels(lmdp_ext, arrays, R)
         ids = np.flatnonzero(states.point_object == arrays.object_names.index("Floor"))
         _, nearest = cKDTree(tex.position).query(states.points[ids])
