@@ -17,6 +17,7 @@ MODULE_NAMES = (
     "ops.scenes",
     "ops.pipeline",
     "ops.display",
+    "ops.policy",
     "ui.gizmos",
     "ops.bake",
 )

@@ -302,7 +302,7 @@ def test_display_survives_save_and_reload(solved, lmdp_ext, tmp_path):
 # -- presets -----------------------------------------------------------------------------------------
 
 def test_viewport_preset(solved, lmdp_ext):
-    ops = lmdp_ext.sub("operators.ops.display")
+    ops = lmdp_ext.sub("operators.adapters.viewport")
     from types import SimpleNamespace
     shading = SimpleNamespace(type='MATERIAL', color_type='MATERIAL', light='STUDIO')
     ops.apply_shading_preset(shading)
