@@ -436,12 +436,12 @@ def test_overlay_is_registered(lmdp_ext):
 # -- the demo's pictures ---------------------------------------------------------------------------------
 
 def test_picture_render_settings(fresh_scene):
-    import lmdp_headless
-    lmdp_headless.configure_render(fresh_scene, 16)
+    import lmdp_pictures
+    lmdp_pictures.configure_render(fresh_scene, 16)
     assert fresh_scene.render.engine == 'CYCLES' and fresh_scene.view_settings.view_transform == 'Standard'
-    assert fresh_scene.render.resolution_x == fresh_scene.render.resolution_y == lmdp_headless.PICTURE_SIZE
+    assert fresh_scene.render.resolution_x == fresh_scene.render.resolution_y == lmdp_pictures.PICTURE_SIZE
     assert not fresh_scene.cycles.use_denoising            # emission-only colour renders need none
-    lmdp_headless.configure_render(fresh_scene, 32)
+    lmdp_pictures.configure_render(fresh_scene, 32)
     assert fresh_scene.cycles.use_denoising or fresh_scene.cycles.samples == 64
     assert fresh_scene.render.image_settings.file_format == 'PNG'
 
