@@ -12,7 +12,7 @@ import importlib
 import os
 import time
 
-#: Render size and samples of the pictures (2 CPU cores: seconds, not minutes).
+#: Render size and samples of the pictures (small: they take seconds, not minutes, on a CPU).
 PICTURE_SIZE = 320
 PICTURE_SAMPLES = {"z": 16, "lit": 32}
 #: Where the demo probes u* (a point on the floor in front of the boxes), per demo kind.
