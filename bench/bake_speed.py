@@ -161,8 +161,8 @@ def main(argv=None):
     args = parse(sys.argv[1:] if argv is None else argv)
     module = start_blender()
     import bpy
-    demo = importlib.import_module(module + ".operators.demo_scenes")
-    extract = importlib.import_module(module + ".operators.extract")
+    demo = importlib.import_module(module + ".operators.adapters.demo_scenes")
+    extract = importlib.import_module(module + ".operators.adapters.extract")
     from lmdp_addon.bake import driver as baking
     from lmdp_addon.model import pipeline
     from lmdp_addon.settings import Settings

@@ -39,7 +39,7 @@ class BlenderSession:
         self._ext = lmdp_extension
         self.module, self._repo = lmdp_extension.register_checkout(
             ROOT, os.path.join(self._tmp, "repo"), repo_module="lmdp_bench", repo_name="LMDP benchmark")
-        self.demo = importlib.import_module(f"{self.module}.operators.demo_scenes")
+        self.demo = importlib.import_module(f"{self.module}.operators.adapters.demo_scenes")
         self.kind = None
 
     @property

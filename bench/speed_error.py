@@ -9,7 +9,7 @@ For each case (scene, receiver object, resolution, path length):
 2. The reference: Cycles' bake with ``ref_samples`` samples, made of two independent halves
    (seeds 1 and 2, ``ref_samples / 2`` each), averaged; cached in ``bench/results/reference/``
    under a key of scene, receiver, resolution, samples, bounces, bpy version and a hash of the
-   scene's geometry and of ``operators/demo_scenes.py``. Its noise is estimated from the halves
+   scene's geometry and of ``operators/adapters/demo_scenes.py``. Its noise is estimated from the halves
    (``metrics.reference_noise``).
 3. Scored texels: covered in Cycles' reference and in the engine's rasterisation
    (``baking.object_texels``; the two masks are compared and the difference reported) and facing
@@ -98,7 +98,7 @@ def geometry_hash(scene):
               scene.world_radiance):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update("\0".join(scene.object_names).encode())
-    h.update((ROOT / "operators" / "demo_scenes.py").read_bytes())
+    h.update((ROOT / "operators" / "adapters" / "demo_scenes.py").read_bytes())
     return h.hexdigest()
 
 
