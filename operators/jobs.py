@@ -9,7 +9,10 @@ implements three steps::
         bl_options = {'REGISTER', 'UNDO'}
         stage = "solve"
 
-        def prepare(self, context):                 # main thread: read bpy, may raise LMDPError
+        @classmethod
+        def poll(cls, context):                     # may it run? (reads only; the reason if not)
+            return ready(cls, context, selection=True, stage="dynamics")
+        def prepare(self, context):                 # main thread: read bpy, check, may raise LMDPError
             return session_for(context.scene).require("dynamics")
         def compute(self, inputs, settings, progress):  # no bpy: may run in a worker thread
             return solvers.solve_desirability(inputs, settings, progress)
@@ -17,9 +20,10 @@ implements three steps::
             session_for(context.scene).store("solution", result, seconds=self.compute_seconds)
             return f"Solved in {result.iterations} iterations"   # the report message
 
-``poll`` (:func:`ready`) refuses while another job runs, and subclasses add what they need (a
-mesh selection, a session stage): Blender then greys the button out with the reason as its
-tooltip, and ``bpy.ops`` raises ``RuntimeError`` with that reason in scripts.
+``poll`` (:func:`ready`; the default refuses only while another job runs) greys the button out
+with the reason as its tooltip, and ``bpy.ops`` raises ``RuntimeError`` with that reason in
+scripts. ``prepare`` runs every check of the call once, on the main thread, and hands what the
+checks computed to ``compute`` in its inputs, so the worker never checks again.
 ``execute`` (scripts, ``bpy.ops.lmdp.solve()``, headless) runs the three steps in turn and, in
 background mode, prints one line per stage (:class:`~lmdp_addon.progress.LogProgress`).
 ``invoke`` (a button in the UI) runs ``compute`` in a worker thread while a modal timer shows
