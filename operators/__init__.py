@@ -4,7 +4,8 @@ Submodules are registered in the order of :data:`MODULE_NAMES` and unregistered 
 Each listed module must exist and define ``register()`` / ``unregister()`` (most build them with
 ``bpy.utils.register_classes_factory``). Nothing is tolerated silently: an import or register
 error undoes what was registered so far and is raised. Adding a module is one line here.
-(``common`` and ``jobs``' helpers are plain libraries; ``jobs`` is listed for its load handler.)
+(``common``, ``bake_steps`` and ``adapters`` are plain libraries; ``jobs`` is listed for its load
+handler.)
 """
 import importlib
 
@@ -16,6 +17,7 @@ MODULE_NAMES = (
     "ops.scenes",
     "ops.pipeline",
     "ops.display",
+    "ops.policy",
     "ui.gizmos",
     "ops.bake",
 )

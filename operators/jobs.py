@@ -9,7 +9,10 @@ implements three steps::
         bl_options = {'REGISTER', 'UNDO'}
         stage = "solve"
 
-        def prepare(self, context):                 # main thread: read bpy, may raise LMDPError
+        @classmethod
+        def poll(cls, context):                     # may it run? (reads only; the reason if not)
+            return ready(cls, context, selection=True, stage="dynamics")
+        def prepare(self, context):                 # main thread: read bpy, check, may raise LMDPError
             return session_for(context.scene).require("dynamics")
         def compute(self, inputs, settings, progress):  # no bpy: may run in a worker thread
             return solvers.solve_desirability(inputs, settings, progress)
@@ -17,6 +20,10 @@ implements three steps::
             session_for(context.scene).store("solution", result, seconds=self.compute_seconds)
             return f"Solved in {result.iterations} iterations"   # the report message
 
+``poll`` (:func:`ready`; the default refuses only while another job runs) greys the button out
+with the reason as its tooltip, and ``bpy.ops`` raises ``RuntimeError`` with that reason in
+scripts. ``prepare`` runs every check of the call once, on the main thread, and hands what the
+checks computed to ``compute`` in its inputs, so the worker never checks again.
 ``execute`` (scripts, ``bpy.ops.lmdp.solve()``, headless) runs the three steps in turn and, in
 background mode, prints one line per stage (:class:`~lmdp_addon.progress.LogProgress`).
 ``invoke`` (a button in the UI) runs ``compute`` in a worker thread while a modal timer shows
@@ -32,11 +39,11 @@ import time
 import bpy
 from bpy.app.handlers import persistent
 
-from ..lmdp_addon.errors import Cancelled, LMDPError
+from ..lmdp_addon.errors import Cancelled, LMDPError, SceneError
 from ..lmdp_addon.progress import LogProgress, Progress
-from .common import WindowManagerProgress, report_error
+from .common import WindowManagerProgress, report_error, selected_meshes
 from .properties import settings_from_scene
-from .session import format_seconds, session_for
+from .session import MISSING_STAGE_MESSAGES, format_seconds, peek, session_for
 
 
 class ThreadProgress(Progress):
@@ -168,10 +175,36 @@ def cancel_running_job():
     return True
 
 
-def _check_idle():
+def _busy_message():
     job = running_job()
-    if job is not None:
-        raise LMDPError(f"Another LMDP job is running ({job[0]}): wait for it or press Esc to cancel it")
+    return f"Another LMDP job is running ({job[0]}): wait for it or press Esc to cancel it" if job else ""
+
+
+def _check_idle():
+    message = _busy_message()
+    if message:
+        raise LMDPError(message)
+
+
+def ready(cls, context, selection=False, stage=None, message=None):
+    """``poll()`` of an LMDP operator class ``cls``: False, with the reason set as its poll message,
+    while another job runs, without a mesh selection (``selection``) or without the session's
+    ``stage`` (``message``: what to say then; default "Solve first" ...). Reads only: never
+    creates the session, so it is safe wherever Blender polls (panel drawing included)."""
+    reason = _busy_message()
+    if not reason and selection:
+        try:
+            selected_meshes(context)
+        except SceneError as error:
+            reason = str(error)
+    if not reason and stage is not None:
+        session = peek(getattr(context, "scene", None))
+        if session is None or not session.has(stage):
+            reason = message or MISSING_STAGE_MESSAGES[stage]
+    if reason:
+        cls.poll_message_set(reason)
+        return False
+    return True
 
 
 class EngineJob:
@@ -187,6 +220,10 @@ class EngineJob:
     stage = ""
     #: seconds between progress refreshes of the modal UI job
     timer_interval = 0.1
+
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context)
 
     # -- the three steps subclasses implement -----------------------------------------------------
     def read_settings(self, context):

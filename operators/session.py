@@ -1,46 +1,58 @@
 """The per-scene session store: the latest result of every LMDP stage, in memory only.
 
-This is the add-on's one cache (STYLE.md: no other global caches). Results are plain engine
-objects (``SceneArrays``, ``StateSpace``, ``PassiveDynamics``, ``Solution``, ``BakeResult`` ...);
-nothing here is written into the .blend file except ``scene.lmdp.session_id``, a random key that
-ties a scene to its session (so renaming a scene keeps its results and a copied scene starts
-empty). Every session is dropped when a file is loaded.
+This is the add-on's one cache (STYLE.md: no other global caches). The engine's stages are kept
+as one :class:`~lmdp_addon.model.pipeline.LMDPResult` (:attr:`SceneSession.result`: ``scene``,
+``states``, ``dynamics``, ``lmdp``, ``solution`` and the engine steps' ``seconds``), the very
+object the bake and the export take; the add-on's own stages (``policy``, ``display``,
+``bake``) sit beside it. Nothing here is written into the .blend file except
+``scene.lmdp.session_id``, a random key that ties a scene to its session (so renaming a scene
+keeps its results and a copied scene starts empty). Every session is dropped when a file is
+loaded.
 
 Stages form a dependency graph (:data:`STAGE_INPUTS`): storing a stage, or
 :meth:`SceneSession.invalidate_from`, clears that stage and everything computed from it, so the
-session never holds a solution of dynamics that are no longer there.
+session never holds a solution of dynamics that are no longer there. A stored ``LMDPResult`` is
+never changed in place: storing makes a new one, so a job that holds the previous one keeps a
+consistent set of stages.
 
-Only the main thread touches the store (operators write it in ``apply``; the panel reads it).
+Only the main thread touches the store (operators write it in ``apply``; the panel and the
+operators' ``poll`` read it with :func:`peek`).
 """
 import numbers
 import time
 import uuid
 from collections import deque
+from dataclasses import replace
 
 import bpy
 from bpy.app.handlers import persistent
 
 from ..lmdp_addon.errors import StageOrderError
+from ..lmdp_addon.model.pipeline import LMDPResult
 
 #: stage -> the stages it is computed from (in pipeline order).
 STAGE_INPUTS = {
-    "scene_arrays": (),
-    "states": ("scene_arrays",),
+    "scene": (),
+    "states": ("scene",),
     "dynamics": ("states",),
-    "costs": ("dynamics",),
-    "solution": ("dynamics", "costs"),
+    "lmdp": ("dynamics",),
+    "solution": ("lmdp",),
     "policy": ("solution",),
     "display": ("solution",),
-    "bake": ("scene_arrays", "solution"),
+    "bake": ("scene", "solution"),
 }
 STAGES = tuple(STAGE_INPUTS)
+#: The engine's stages: the fields of ``LMDPResult``, held in :attr:`SceneSession.result`.
+ENGINE_STAGES = ("scene", "states", "dynamics", "lmdp", "solution")
+#: The ``LMDPResult.seconds`` key of the engine step that computes a stage.
+STEP_OF_STAGE = {"states": "sample", "dynamics": "build", "solution": "solve"}
 
 #: What to tell the user when a stage is required but missing.
 MISSING_STAGE_MESSAGES = {
-    "scene_arrays": "Sample the states first (LMDP panel > Sample)",
+    "scene": "Sample the states first (LMDP panel > Sample)",
     "states": "Sample the states first (LMDP panel > Sample)",
     "dynamics": "Build the dynamics first (LMDP panel > Build)",
-    "costs": "Build the dynamics first (LMDP panel > Build)",
+    "lmdp": "Build the dynamics first (LMDP panel > Build)",
     "solution": "Solve first (LMDP panel > Solve)",
     "policy": "Solve first (LMDP panel > Solve)",
     "display": "Show the desirability first (LMDP panel > Show)",
@@ -62,24 +74,24 @@ def downstream(stage):
 
 
 class SceneSession:
-    """Results, settings, timings and messages of the LMDP stages of one scene."""
+    """Results, timings and messages of the LMDP stages of one scene."""
 
     def __init__(self, scene_name):
         self.scene_name = scene_name
-        self.results = {}          #: stage -> engine result
-        self.settings = {}         #: stage -> lmdp_addon.settings.Settings used to compute it
-        self.timings = {}          #: stage -> wall time in seconds
+        self.result = LMDPResult(scene=None)  #: the engine stages (never changed in place)
+        self._own = {}             #: policy / display / bake -> result
+        self._seconds = {}         #: wall time of the stages without an engine step
         self.object_names = ()     #: names of the meshes that carry the states
         self.messages = deque(maxlen=MAX_MESSAGES)  #: (time, stage, level, text), newest last
 
     # -- stage results ----------------------------------------------------------------------------
-    def has(self, stage):
-        downstream(stage)  # validates the name
-        return self.results.get(stage) is not None
-
     def get(self, stage, default=None):
-        downstream(stage)
-        return self.results.get(stage, default)
+        downstream(stage)  # validates the name
+        value = getattr(self.result, stage) if stage in ENGINE_STAGES else self._own.get(stage)
+        return default if value is None else value
+
+    def has(self, stage):
+        return self.get(stage) is not None
 
     def require(self, stage, message=None):
         """The result of ``stage``; raises :class:`StageOrderError` ("Solve first") if missing."""
@@ -88,29 +100,58 @@ class SceneSession:
             raise StageOrderError(message or MISSING_STAGE_MESSAGES[stage])
         return result
 
-    def store(self, stage, result, *, seconds=None, settings=None):
+    @property
+    def results(self):
+        """``{stage: result}`` of every stored stage, in :data:`STAGES` order."""
+        return {stage: self.get(stage) for stage in STAGES if self.has(stage)}
+
+    @property
+    def timings(self):
+        """``{stage: wall time in seconds}`` of the stored stages that have one."""
+        seconds = {}
+        for stage in STAGES:
+            value = self.result.seconds.get(STEP_OF_STAGE[stage]) if stage in STEP_OF_STAGE \
+                else self._seconds.get(stage)
+            if value is not None and self.has(stage):
+                seconds[stage] = value
+        return seconds
+
+    def store(self, stage, result, *, seconds=None):
         """Keep ``result`` as the latest ``stage``; clears every stage computed from the old one."""
         self.invalidate_from(stage)
-        self.results[stage] = result
-        if seconds is not None:
-            self.timings[stage] = float(seconds)
-        if settings is not None:
-            self.settings[stage] = settings
+        if stage in ENGINE_STAGES:
+            times = dict(self.result.seconds)
+            if seconds is not None and stage in STEP_OF_STAGE:
+                times[STEP_OF_STAGE[stage]] = float(seconds)
+            self.result = replace(self.result, **{stage: result}, seconds=times)
+        else:
+            self._own[stage] = result
+        if seconds is not None and stage not in STEP_OF_STAGE:
+            self._seconds[stage] = float(seconds)
+
+    def store_result(self, result, object_names):
+        """Keep the engine's ``LMDPResult`` of a whole run (Run All) and the meshes that carry
+        its states; clears every stage of the previous run."""
+        self.invalidate_from("scene")
+        self.result = result
+        self.object_names = tuple(object_names)
 
     def invalidate_from(self, stage):
         """Forget ``stage`` and everything downstream of it; returns the stages that were set."""
-        cleared = []
-        for name in downstream(stage):
-            if self.results.pop(name, None) is not None:
-                cleared.append(name)
-            self.settings.pop(name, None)
-            self.timings.pop(name, None)
+        stages = downstream(stage)
+        cleared = [name for name in stages if self.has(name)]
+        engine = [name for name in stages if name in ENGINE_STAGES]
+        if engine:
+            steps = {STEP_OF_STAGE.get(name) for name in engine}
+            self.result = replace(self.result, **{name: None for name in engine},
+                                  seconds={k: v for k, v in self.result.seconds.items() if k not in steps})
+        for name in stages:
+            self._own.pop(name, None)
+            self._seconds.pop(name, None)
         return cleared
 
     def clear(self):
-        self.results.clear()
-        self.settings.clear()
-        self.timings.clear()
+        self.invalidate_from("scene")
         self.messages.clear()
         self.object_names = ()
 
@@ -127,16 +168,14 @@ class SceneSession:
     def status_lines(self):
         """``[(stage, text)]`` for every stored stage: counts, memory, wall time."""
         lines = []
-        for stage in STAGES:
-            result = self.results.get(stage)
-            if result is None:
-                continue
+        timings = self.timings
+        for stage, result in self.results.items():
             parts = [describe(result)]
             nbytes = result_nbytes(result)
             if nbytes:
                 parts.append(format_bytes(nbytes))
-            if stage in self.timings:
-                parts.append(format_seconds(self.timings[stage]))
+            if stage in timings:
+                parts.append(format_seconds(timings[stage]))
             lines.append((stage, ", ".join(p for p in parts if p)))
         return lines
 

@@ -17,15 +17,11 @@ lightmaps; by default when every mesh has a UV map), ``--pictures`` / ``--no-pic
 
 It loads the extension (an installed ``bl_ext.*.lmdp_light_transport`` if there is one, otherwise
 this checkout through a temporary extension repository), selects the meshes, runs
-``bpy.ops.lmdp.run_pipeline()`` (sample, build, solve, show, bake; or, while that operator does
-not exist yet, every stage operator that does), exports ``lmdp.npz`` when ``lmdp.export_npz`` exists, and writes into ``--output``:
-``summary.json`` (objects, settings, steps with timings, errors) and ``<name>_lmdp.blend`` (a copy
-of the scene with the results). Bakes go to ``--output`` too (``scene.lmdp.output_dir``).
-With pictures, Cycles renders (Standard view transform) of ``<name>_z.png`` (z as colours,
-``lmdp.show_desirability`` + ``lmdp.view_desirability(target='RENDER')``), ``<name>_policy.png``
-(``lmdp.show_policy(as_mesh=True)`` in the lit scene), ``<name>_probe.png`` (``lmdp.probe_policy``)
-``<name>_lightmaps.png`` (the baked lightmaps on their objects) and, when matplotlib is
-importable, ``<name>_z_legend.png`` (the z picture with its colour bar).
+``bpy.ops.lmdp.run_pipeline()`` (sample, build, solve, show, bake), exports ``lmdp.npz``
+(``lmdp.export_npz``), and writes into ``--output``: ``summary.json`` (objects, settings, steps
+with timings, errors) and ``<name>_lmdp.blend`` (a copy of the scene with the results). Bakes go
+to ``--output`` too (``scene.lmdp.output_dir``); the pictures are described in
+``scripts/lmdp_pictures.py``.
 Exit status: 0 on success, 1 when a step fails (its message is printed), 2 for bad arguments.
 """
 import argparse
@@ -35,17 +31,17 @@ import shutil
 import sys
 import tempfile
 import time
+from functools import partial
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CHECKOUT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 
 import lmdp_extension  # noqa: E402  (needs HERE on sys.path, also under `blender --python`)
+import lmdp_pictures  # noqa: E402
 
 DEMO_KINDS = {"cornell": "CORNELL_BOX", "narrow_opening": "NARROW_OPENING", "plane_under_sky": "PLANE_UNDER_SKY",
               "parallel_squares": "PARALLEL_SQUARES", "heavy": "HEAVY"}
-STAGE_OPERATORS = ("lmdp.sample_states", "lmdp.build_dynamics", "lmdp.solve",
-                   "lmdp.show_desirability", "lmdp.bake")
 
 
 class UsageError(Exception):
@@ -133,9 +129,6 @@ def submodule(extension, name):
 def build_demo(kind, common):
     import bpy
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-    if not common.operator_available("lmdp.add_demo_scene"):
-        raise StepError("the built-in demo scenes are not in this build of the extension "
-                        "(lmdp.add_demo_scene is not registered: operators/demo_scenes.py)")
     try:
         common.call_operator("lmdp.add_demo_scene", kind=DEMO_KINDS[kind])
     except RuntimeError as error:
@@ -250,186 +243,8 @@ def run_operator(common, idname, steps, **kwargs):
 
 
 def run_pipeline(common, output, steps, bake=True):
-    if common.operator_available("lmdp.run_pipeline"):
-        run_operator(common, "lmdp.run_pipeline", steps, bake=bake)
-    else:
-        stages = [idname for idname in STAGE_OPERATORS if common.operator_available(idname)
-                  and (bake or idname != "lmdp.bake")]
-        if not stages:
-            raise StepError("this build of the extension has no LMDP pipeline operators yet "
-                            "(neither lmdp.run_pipeline nor any stage operator is registered)")
-        for idname in stages:
-            run_operator(common, idname, steps)
-    if common.operator_available("lmdp.export_npz"):
-        run_operator(common, "lmdp.export_npz", steps, filepath=os.path.join(output, "lmdp.npz"))
-
-
-# -- pictures -----------------------------------------------------------------------------------------
-#: Render size and samples of the pictures (2 CPU cores: seconds, not minutes).
-PICTURE_SIZE = 320
-PICTURE_SAMPLES = {"z": 16, "lit": 32}
-#: Where the demo probes u* (a point on the floor in front of the boxes), per demo kind.
-DEMO_PROBES = {"cornell": (0.12, -0.38, 0.0), "heavy": (0.12, -0.38, 0.0)}
-PICTURE_OPERATORS = ("lmdp.show_desirability", "lmdp.view_desirability", "lmdp.show_policy",
-                     "lmdp.probe_policy")
-
-
-def configure_render(scene, samples):
-    """Cycles on the CPU at PICTURE_SIZE, Standard view transform, 8-bit PNG; OIDN when the
-    samples are few for a lit scene (the colour renders are emission only and need none)."""
-    scene.render.engine = 'CYCLES'
-    scene.cycles.device = 'CPU'
-    scene.cycles.samples = samples
-    scene.cycles.use_adaptive_sampling = False
-    scene.cycles.use_denoising = samples > PICTURE_SAMPLES["z"]
-    if scene.cycles.use_denoising:
-        try:
-            scene.cycles.denoiser = 'OPENIMAGEDENOISE'
-        except TypeError:  # a build without OIDN: more samples instead
-            scene.cycles.use_denoising = False
-            scene.cycles.samples = 2 * samples
-    scene.view_settings.view_transform = 'Standard'
-    scene.view_settings.look = 'None'
-    scene.render.resolution_x = scene.render.resolution_y = PICTURE_SIZE
-    scene.render.resolution_percentage = 100
-    scene.render.film_transparent = False
-    scene.render.image_settings.file_format = 'PNG'
-    scene.render.image_settings.color_mode = 'RGB'
-    scene.render.image_settings.color_depth = '8'
-
-
-def render_picture(scene, path, samples, steps):
-    import bpy
-    configure_render(scene, samples)
-    scene.render.filepath = path
-    start = time.perf_counter()
-    print(f"[LMDP] rendering {os.path.basename(path)} ({PICTURE_SIZE}x{PICTURE_SIZE}, {samples} samples)", flush=True)
-    bpy.ops.render.render(write_still=True)
-    steps.append({"operator": "render.render", "arguments": {"filepath": path}, "status": "FINISHED",
-                  "seconds": time.perf_counter() - start})
-    return path
-
-
-def _hide_generated(kind, hidden):
-    import bpy
-    for obj in bpy.data.objects:
-        if obj.get("lmdp_generated") == kind:
-            obj.hide_render = hidden
-
-
-def render_pictures(common, extension, output, name, steps, explicit, demo):
-    """The three pictures of the module docstring; returns {kind: path}."""
-    import bpy
-    missing = [i for i in PICTURE_OPERATORS if not common.operator_available(i)]
-    if missing:
-        print(f"[LMDP] no pictures: this build has no {', '.join(missing)}", flush=True)
-        return {}
-    scene = bpy.context.scene
-    if scene.camera is None:
-        print("[LMDP] no pictures: the scene has no camera", flush=True)
-        return {}
-    props = scene.lmdp
-    if "display_subdivide" not in explicit:
-        props.display_subdivide = True  # a faithful picture even on single-quad walls
-    pictures = {}
-    run_operator(common, "lmdp.show_desirability", steps)
-    run_operator(common, "lmdp.view_desirability", steps, target='RENDER')
-    try:
-        pictures["z"] = render_picture(scene, os.path.join(output, f"{name}_z.png"), PICTURE_SAMPLES["z"], steps)
-    finally:
-        run_operator(common, "lmdp.view_desirability", steps, target='RENDER', enable=False)
-    legend = legend_picture(extension, scene, pictures["z"], os.path.join(output, f"{name}_z_legend.png"))
-    if legend:
-        pictures["z_legend"] = legend
-
-    if "policy_subset" not in explicit:
-        props.policy_subset = 'MOST_INFORMATIVE'
-    if "policy_max_points" not in explicit:
-        props.policy_max_points = 40
-    if "policy_arrow_scale" not in explicit:
-        props.policy_arrow_scale = 0.3 * scene_size(extension, scene)
-    run_operator(common, "lmdp.show_policy", steps, as_mesh=True)
-    _hide_generated("probe", True)
-    pictures["policy"] = render_picture(scene, os.path.join(output, f"{name}_policy.png"), PICTURE_SAMPLES["lit"], steps)
-
-    location = DEMO_PROBES.get(demo)
-    if location is None:  # a .blend file: probe where the policy is most informative
-        view = submodule(extension, "operators.session").peek(scene).get("policy")
-        states = submodule(extension, "operators.session").peek(scene).get("states")
-        location = tuple(states.points[view.points[0]]) if view is not None and len(view.points) else None
-    if location is not None:
-        run_operator(common, "lmdp.probe_policy", steps, use_cursor=False, location=location, as_mesh=True,
-                     next_states=16)
-        _hide_generated("policy", True)
-        _hide_generated("probe", False)
-        pictures["probe"] = render_picture(scene, os.path.join(output, f"{name}_probe.png"), PICTURE_SAMPLES["lit"], steps)
-        _hide_generated("policy", False)
-
-    lightmaps = lightmap_picture(extension, scene, os.path.join(output, f"{name}_lightmaps.png"), steps)
-    if lightmaps:
-        pictures["lightmaps"] = lightmaps
-    return pictures
-
-
-def lightmap_picture(extension, scene, path, steps):
-    """The baked lightmaps shown on their objects (each object's preview material: emission =
-    its ``<object>_lmdp_indirect`` image, i.e. E_ind/π as baked, no albedo), rendered like the z
-    picture; the materials are restored afterwards. None when nothing was baked."""
-    import bpy
-    ops_bake = submodule(extension, "operators.ops.bake")
-    baked = [(obj, ops_bake.own_image(obj.name)) for obj in scene.objects if obj.type == 'MESH']
-    baked = [(obj, image) for obj, image in baked if image is not None]
-    if not baked:
-        return None
-    for obj, image in baked:
-        ops_bake.hook_preview(obj, image)
-    _hide_generated("policy", True)
-    _hide_generated("probe", True)
-    try:
-        return render_picture(scene, path, PICTURE_SAMPLES["z"], steps)
-    finally:
-        for obj, _image in baked:
-            ops_bake.unhook_preview(obj)
-        _hide_generated("policy", False)
-        _hide_generated("probe", False)
-
-
-def scene_size(extension, scene):
-    """Bounding-box diagonal of the captured scene over sqrt(3) (1 m for the Cornell box)."""
-    arrays = submodule(extension, "operators.session").peek(scene).get("scene_arrays")
-    return arrays.bounding_diagonal() / 3 ** 0.5 if arrays is not None else 1.0
-
-
-def legend_picture(extension, scene, z_path, path):
-    """The z picture beside its colour bar (matplotlib, when importable; else nothing)."""
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return None
-    record = submodule(extension, "operators.session").peek(scene).get("display")
-    colormap = submodule(extension, "lmdp_addon.display.colormap")
-    import numpy as np
-    scale = record.scale
-    image = plt.imread(z_path)
-    figure, axes = plt.subplots(figsize=(4.6, 3.6), dpi=100, gridspec_kw={"width_ratios": [1.0, 0.05]},
-                                ncols=2, constrained_layout=True)
-    axes[0].imshow(image)
-    axes[0].set_axis_off()
-    bar = colormap.colormap_srgb(np.linspace(0, 1, 256), record.colormap)
-    ticks = np.linspace(0, 1, 5)
-    axes[1].imshow(bar[::-1, None, :], aspect="auto", extent=(0, 1, 0, 1))
-    axes[1].yaxis.tick_right()
-    axes[1].set_yticks(ticks, scale.tick_labels(5))
-    axes[1].set_xticks([])
-    label = scale.label.replace("z: ", "z, ")
-    axes[1].set_ylabel(label + (" (log)" if scale.log else ""), fontsize=8)
-    axes[1].yaxis.set_label_position("right")
-    axes[1].tick_params(labelsize=8)
-    figure.savefig(path)
-    plt.close(figure)
-    return path
+    run_operator(common, "lmdp.run_pipeline", steps, bake=bake)
+    run_operator(common, "lmdp.export_npz", steps, filepath=os.path.join(output, "lmdp.npz"))
 
 
 def session_summary(extension, scene):
@@ -443,6 +258,80 @@ def session_summary(extension, scene):
     }
 
 
+def open_scene(args, common):
+    """Build the demo or open the .blend file; returns (summary's "blend", the results' name)."""
+    import bpy
+    if args.demo:
+        build_demo(args.demo, common)
+        return f"demo:{args.demo}", args.demo
+    if args.blend:
+        bpy.ops.wm.open_mainfile(filepath=os.path.abspath(args.blend), load_ui=False)
+    elif not bpy.data.filepath:
+        raise UsageError("no .blend file: pass scene.blend (or run inside `blender scene.blend "
+                         "--background --python ...`), or use --demo cornell")
+    return bpy.data.filepath, os.path.splitext(os.path.basename(bpy.data.filepath))[0]
+
+
+def carrier_objects(args):
+    """The meshes that carry the states: the demo's selection, or :func:`choose_objects`."""
+    import bpy
+    if args.demo and not args.objects and any(o.type == 'MESH' for o in bpy.context.selected_objects):
+        objects = [o for o in bpy.context.selected_objects if o.type == 'MESH']  # the demo's choice
+    else:
+        objects = choose_objects(args.objects)
+    if not objects:
+        raise StepError("no mesh to compute: the scene has no visible mesh that is not an emitter "
+                        "(use --objects to choose)")
+    return objects
+
+
+def wants_bake(args, objects):
+    """--bake / --no-bake, or by default: bake when every mesh has a UV map (else say why not)."""
+    if args.bake is not None:
+        return args.bake
+    no_uv = [obj.name for obj in objects if not obj.data.uv_layers]
+    if no_uv:
+        print(f"[LMDP] no bake: {', '.join(sorted(no_uv))} ha{'s' if len(no_uv) == 1 else 've'} "
+              "no UV map (add one, or pass --bake to insist)", flush=True)
+    return not no_uv
+
+
+def compute(args, common, extension, output, name, objects, summary):
+    """Run All (and the pictures), then save the result .blend; fills ``summary``."""
+    import bpy
+    try:
+        summary["bake"] = wants_bake(args, objects)
+        run_pipeline(common, output, summary["steps"], bake=summary["bake"])
+        if args.pictures if args.pictures is not None else bool(args.demo):
+            explicit = {item.partition("=")[0].strip() for item in args.settings}
+            summary["pictures"] = lmdp_pictures.render_pictures(
+                partial(run_operator, common), extension, output, name, summary["steps"], explicit, args.demo)
+    finally:
+        summary["session"] = session_summary(extension, bpy.context.scene)
+    result_blend = os.path.join(output, f"{name}_lmdp.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=result_blend, copy=True)
+    summary["result_blend"] = result_blend
+
+
+def run(args, output, summary, cleanup):
+    """Everything after the arguments: load, configure, select, compute (unless --dry-run)."""
+    import bpy
+    extension, origin = load_extension(cleanup)
+    summary["extension"] = {"module": extension, "origin": origin}
+    common = submodule(extension, "operators.common")
+    summary["blend"], name = open_scene(args, common)
+    scene = bpy.context.scene
+    scene.lmdp.output_dir = output
+    apply_settings(scene, args.settings)
+    objects = carrier_objects(args)
+    select_only(objects)
+    summary["objects"] = sorted(obj.name for obj in objects)
+    summary["settings"] = submodule(extension, "operators.properties").settings_from_scene(scene).as_dict()
+    print(f"[LMDP] {len(objects)} meshes carry the states: {', '.join(summary['objects'])}", flush=True)
+    if not args.dry_run:
+        compute(args, common, extension, output, name, objects, summary)
+
+
 def main(argv=None):
     argv = list(sys.argv if argv is None else argv)
     try:
@@ -450,9 +339,6 @@ def main(argv=None):
     except UsageError as error:
         print(f"lmdp_headless.py: error: {error}", file=sys.stderr)
         return 2
-
-    import bpy
-
     output = os.path.abspath(args.output)
     os.makedirs(output, exist_ok=True)
     summary = {"blend": None, "extension": None, "objects": [], "settings": {}, "steps": [],
@@ -460,68 +346,11 @@ def main(argv=None):
     cleanup = []
     status = 0
     try:
-        extension, origin = load_extension(cleanup)
-        summary["extension"] = {"module": extension, "origin": origin}
-        common = submodule(extension, "operators.common")
-        properties = submodule(extension, "operators.properties")
-
-        if args.demo:
-            build_demo(args.demo, common)
-            summary["blend"] = f"demo:{args.demo}"
-            name = args.demo
-        else:
-            if args.blend:
-                bpy.ops.wm.open_mainfile(filepath=os.path.abspath(args.blend), load_ui=False)
-            elif not bpy.data.filepath:
-                raise UsageError("no .blend file: pass scene.blend (or run inside `blender scene.blend "
-                                 "--background --python ...`), or use --demo cornell")
-            summary["blend"] = bpy.data.filepath
-            name = os.path.splitext(os.path.basename(bpy.data.filepath))[0]
-
-        scene = bpy.context.scene
-        scene.lmdp.output_dir = output
-        apply_settings(scene, args.settings)
-        if args.demo and not args.objects and any(o.type == 'MESH' for o in bpy.context.selected_objects):
-            objects = [o for o in bpy.context.selected_objects if o.type == 'MESH']  # the demo's choice
-        else:
-            objects = choose_objects(args.objects)
-        if not objects:
-            raise StepError("no mesh to compute: the scene has no visible mesh that is not an emitter "
-                            "(use --objects to choose)")
-        select_only(objects)
-        summary["objects"] = sorted(obj.name for obj in objects)
-        summary["settings"] = properties.settings_from_scene(scene).as_dict()
-        print(f"[LMDP] {len(objects)} meshes carry the states: {', '.join(summary['objects'])}", flush=True)
-
-        if not args.dry_run:
-            try:
-                bake = args.bake
-                if bake is None:
-                    no_uv = [obj.name for obj in objects if not obj.data.uv_layers]
-                    bake = not no_uv
-                    if no_uv:
-                        print(f"[LMDP] no bake: {', '.join(sorted(no_uv))} ha{'s' if len(no_uv) == 1 else 've'} "
-                              "no UV map (add one, or pass --bake to insist)", flush=True)
-                summary["bake"] = bake
-                run_pipeline(common, output, summary["steps"], bake=bake)
-                pictures = args.pictures if args.pictures is not None else bool(args.demo)
-                if pictures:
-                    explicit = {item.partition("=")[0].strip() for item in args.settings}
-                    summary["pictures"] = render_pictures(common, extension, output, name, summary["steps"],
-                                                          explicit, args.demo)
-            finally:
-                summary["session"] = session_summary(extension, bpy.context.scene)
-            result_blend = os.path.join(output, f"{name}_lmdp.blend")
-            bpy.ops.wm.save_as_mainfile(filepath=result_blend, copy=True)
-            summary["result_blend"] = result_blend
-    except UsageError as error:
+        run(args, output, summary, cleanup)
+    except (UsageError, StepError) as error:
         summary["error"] = str(error)
         print(f"lmdp_headless.py: error: {error}", file=sys.stderr)
-        status = 2
-    except StepError as error:
-        summary["error"] = str(error)
-        print(f"lmdp_headless.py: error: {error}", file=sys.stderr)
-        status = 1
+        status = 2 if isinstance(error, UsageError) else 1
     finally:
         with open(os.path.join(output, "summary.json"), "w", encoding="utf-8") as fh:
             json.dump(summary, fh, indent=2, default=str)

@@ -1,1 +1,4 @@
-"""bpy data <-> engine arrays: scene extraction, display data, demo scenes, lightmap images."""
+"""bpy data <-> engine arrays: ``extract`` (scene -> SceneArrays), ``display_targets`` /
+``display_data`` / ``display_objects`` / ``viewport`` (showing z and u*), ``lightmaps`` (baked
+images and files), ``materials`` (lightmap hook-up), ``demo_scenes`` (built-in scenes, Cycles
+reference bakes)."""

@@ -9,6 +9,8 @@ all see the same scene.
 everything it touched (selection, active object, active image nodes, render settings); it is the
 reference the engine's bakes and texel mapping are compared with (docs/cycles_conventions.md).
 """
+from contextlib import contextmanager
+
 import bpy
 import numpy as np
 from mathutils import Vector
@@ -168,6 +170,87 @@ def _scratch_material():
     return mat
 
 
+#: Cycles settings :func:`bake_cycles` may change, restored afterwards.
+_CYCLES_SETTINGS = ("samples", "use_adaptive_sampling", "max_bounces", "diffuse_bounces", "seed", "device",
+                    "sample_clamp_indirect")
+
+
+@contextmanager
+def _bake_target(obj, image):
+    """``obj``'s materials with an active Image Texture node of ``image`` (Cycles bakes into the
+    active node), a stand-in Diffuse material if it has none; all removed afterwards."""
+    added_nodes = []     # (node tree, node, previous active node)
+    scratch_slot = None
+    try:
+        if not obj.material_slots or all(slot.material is None for slot in obj.material_slots):
+            scratch_slot = _scratch_material()
+            obj.data.materials.append(scratch_slot)
+        for mat in {slot.material for slot in obj.material_slots if slot.material is not None}:
+            tree = mat.node_tree
+            node = tree.nodes.new("ShaderNodeTexImage")
+            node.image = image
+            node.label = "LMDP bake scratch"
+            added_nodes.append((tree, node, tree.nodes.active))
+            tree.nodes.active = node
+        yield
+    finally:
+        for tree, node, previous in added_nodes:
+            tree.nodes.remove(node)
+            if previous is not None:
+                tree.nodes.active = previous
+        if scratch_slot is not None:
+            obj.data.materials.pop(index=len(obj.data.materials) - 1)
+            bpy.data.materials.remove(scratch_slot)
+
+
+@contextmanager
+def _only_selected(view_layer, obj):
+    """``obj`` alone selected and active (selectable even if it was not); restored afterwards."""
+    saved_selection = [o for o in view_layer.objects if o.select_get(view_layer=view_layer)]
+    saved_active = view_layer.objects.active
+    saved_hidden_select = obj.hide_select
+    try:
+        for o in saved_selection:
+            o.select_set(False)
+        obj.hide_select = False
+        obj.select_set(True)
+        view_layer.objects.active = obj
+        yield
+    finally:
+        obj.select_set(False)
+        obj.hide_select = saved_hidden_select
+        for o in saved_selection:
+            o.select_set(True)
+        view_layer.objects.active = saved_active
+
+
+@contextmanager
+def _cycles_settings(scene, samples, max_bounces, seed, clamp_indirect):
+    """Cycles on the CPU without adaptive sampling, with the given overrides (None: keep);
+    the render engine and every setting of :data:`_CYCLES_SETTINGS` restored afterwards."""
+    cycles = scene.cycles
+    saved_engine = scene.render.engine
+    saved = {key: getattr(cycles, key) for key in _CYCLES_SETTINGS}
+    try:
+        scene.render.engine = 'CYCLES'
+        cycles.device = 'CPU'
+        cycles.use_adaptive_sampling = False
+        if samples is not None:
+            cycles.samples = int(samples)
+        if max_bounces is not None:
+            cycles.max_bounces = int(max_bounces)
+            cycles.diffuse_bounces = int(max_bounces)
+        if seed is not None:
+            cycles.seed = int(seed)
+        if clamp_indirect is not None:
+            cycles.sample_clamp_indirect = float(clamp_indirect)
+        yield
+    finally:
+        scene.render.engine = saved_engine
+        for key, value in saved.items():
+            setattr(cycles, key, value)
+
+
 def bake_cycles(context, obj, bake_type='DIFFUSE', pass_filter=('INDIRECT',), resolution=128,
                 samples=None, margin=0, margin_type='EXTEND', uv_map="", fill=0.0,
                 normal_space='OBJECT', max_bounces=None, seed=None, clamp_indirect=None):
@@ -187,82 +270,26 @@ def bake_cycles(context, obj, bake_type='DIFFUSE', pass_filter=('INDIRECT',), re
     """
     scene = context.scene
     view_layer = context.view_layer
-    cycles = scene.cycles
-    saved_render = {
-        "engine": scene.render.engine,
-        "samples": cycles.samples,
-        "use_adaptive_sampling": cycles.use_adaptive_sampling,
-        "max_bounces": cycles.max_bounces,
-        "diffuse_bounces": cycles.diffuse_bounces,
-        "seed": cycles.seed,
-        "device": cycles.device,
-        "sample_clamp_indirect": cycles.sample_clamp_indirect,
-    }
-    saved_selection = [o for o in view_layer.objects if o.select_get(view_layer=view_layer)]
-    saved_active = view_layer.objects.active
-    saved_hidden_select = obj.hide_select
     image = bpy.data.images.new(f"LMDP bake {obj.name}", resolution, resolution,
                                 alpha=True, float_buffer=True)
     image.pixels.foreach_set(np.full(resolution * resolution * 4, fill, dtype=np.float32))
-    added_nodes = []     # (node tree, node, previous active node)
-    scratch_slot = None
+    kwargs = dict(type=bake_type, margin=int(margin), margin_type=margin_type, use_clear=False,
+                  target='IMAGE_TEXTURES', save_mode='INTERNAL', use_selected_to_active=False,
+                  uv_layer=uv_map or "")
+    if bake_type == 'DIFFUSE':
+        kwargs["pass_filter"] = set(pass_filter)
+    if bake_type == 'NORMAL':
+        kwargs["normal_space"] = normal_space
     try:
-        if not obj.material_slots or all(slot.material is None for slot in obj.material_slots):
-            scratch_slot = _scratch_material()
-            obj.data.materials.append(scratch_slot)
-        for mat in {slot.material for slot in obj.material_slots if slot.material is not None}:
-            tree = mat.node_tree
-            node = tree.nodes.new("ShaderNodeTexImage")
-            node.image = image
-            node.label = "LMDP bake scratch"
-            added_nodes.append((tree, node, tree.nodes.active))
-            tree.nodes.active = node
-        scene.render.engine = 'CYCLES'
-        cycles.device = 'CPU'
-        cycles.use_adaptive_sampling = False
-        if samples is not None:
-            cycles.samples = int(samples)
-        if max_bounces is not None:
-            cycles.max_bounces = int(max_bounces)
-            cycles.diffuse_bounces = int(max_bounces)
-        if seed is not None:
-            cycles.seed = int(seed)
-        if clamp_indirect is not None:
-            cycles.sample_clamp_indirect = float(clamp_indirect)
-        for o in saved_selection:
-            o.select_set(False)
-        obj.hide_select = False
-        obj.select_set(True)
-        view_layer.objects.active = obj
-        kwargs = dict(type=bake_type, margin=int(margin), margin_type=margin_type, use_clear=False,
-                      target='IMAGE_TEXTURES', save_mode='INTERNAL', use_selected_to_active=False,
-                      uv_layer=uv_map or "")
-        if bake_type == 'DIFFUSE':
-            kwargs["pass_filter"] = set(pass_filter)
-        if bake_type == 'NORMAL':
-            kwargs["normal_space"] = normal_space
-        with context.temp_override(scene=scene, view_layer=view_layer, active_object=obj,
-                                   object=obj, selected_objects=[obj], selected_editable_objects=[obj]):
+        with _bake_target(obj, image), _cycles_settings(scene, samples, max_bounces, seed, clamp_indirect), \
+                _only_selected(view_layer, obj), \
+                context.temp_override(scene=scene, view_layer=view_layer, active_object=obj, object=obj,
+                                      selected_objects=[obj], selected_editable_objects=[obj]):
             result = bpy.ops.object.bake(**kwargs)
-        if result != {'FINISHED'}:
-            raise RuntimeError(f"Cycles bake of '{obj.name}' did not finish: {result}")
-        pixels = np.empty(resolution * resolution * 4, dtype=np.float32)
-        image.pixels.foreach_get(pixels)
+            if result != {'FINISHED'}:
+                raise RuntimeError(f"Cycles bake of '{obj.name}' did not finish: {result}")
+            pixels = np.empty(resolution * resolution * 4, dtype=np.float32)
+            image.pixels.foreach_get(pixels)
         return pixels.reshape(resolution, resolution, 4)
     finally:
-        for tree, node, previous in added_nodes:
-            tree.nodes.remove(node)
-            if previous is not None:
-                tree.nodes.active = previous
-        if scratch_slot is not None:
-            obj.data.materials.pop(index=len(obj.data.materials) - 1)
-            bpy.data.materials.remove(scratch_slot)
         bpy.data.images.remove(image)
-        obj.select_set(False)
-        obj.hide_select = saved_hidden_select
-        for o in saved_selection:
-            o.select_set(True)
-        view_layer.objects.active = saved_active
-        scene.render.engine = saved_render.pop("engine")
-        for key, value in saved_render.items():
-            setattr(cycles, key, value)

@@ -1,7 +1,7 @@
-"""Display results as Blender data: point attributes, the LMDP Display modifier, arrow objects.
+"""The desirability field as mesh data: point attributes and the LMDP Display modifier.
 
-Everything the add-on writes is marked so that re-running replaces it and :func:`clear_all`
-removes it, and nothing else is ever touched:
+Everything the add-on writes is marked so that re-running replaces it and
+:func:`.display_objects.clear_all` removes it, and nothing else is ever touched:
 
 * mesh point attributes ``lmdp_z`` (FLOAT), ``lmdp_z_color`` (FLOAT_COLOR), ``lmdp_z_rgb``
   (FLOAT_COLOR, PHYSICAL mode), ``lmdp_quantity`` (FLOAT) and ``lmdp_log10_z`` (FLOAT: exact
@@ -17,9 +17,8 @@ removes it, and nothing else is ever touched:
   the fine field from a hidden "LMDP Field <object>" mesh object (not linked to any scene,
   referenced only by the modifier) with Sample Nearest Surface. The user's mesh data never
   changes; removing the modifier shows the vertex colours of the original mesh again.
-* objects "LMDP Policy" / "LMDP Probe" (custom property ``lmdp_generated``) in the collection
-  "LMDP", with the emissive material "LMDP Arrows"; the render override material
-  "LMDP Desirability".
+
+The arrow objects and the add-on's materials are in :mod:`.display_objects`.
 """
 import bpy
 import numpy as np
@@ -32,17 +31,10 @@ COLOR_ATTRIBUTE = "lmdp_z_color"
 OWNED_KEY = "lmdp_attributes"
 PREVIOUS_COLORS_KEY = "lmdp_previous_colors"
 DISPLAY_FLAG = "lmdp_display"
-ARROWS_FLAG = "lmdp_arrows"
 MODIFIER_NAME = "LMDP Display"
 FIELD_GROUP = "LMDP Display Field"
 FIELD_GROUP_VERSION = 2
 FIELD_OBJECT_PREFIX = "LMDP Field "
-COLLECTION = "LMDP"
-ARROW_MATERIAL = "LMDP Arrows"
-RENDER_MATERIAL = "LMDP Desirability"
-ARROW_COLOR_ATTRIBUTE = "lmdp_arrow_color"
-#: Grey of surfaces without a displayed field in the render override (sRGB 0.5).
-NEUTRAL_GREY = 0.214
 
 
 # -- reading meshes ---------------------------------------------------------------------------------
@@ -164,7 +156,8 @@ def remove_point_attributes(mesh):
 
 # -- the LMDP Display modifier (subdivision carrying the fine field) -----------------------------------------
 
-def _marked(idblock, kind=None):
+def marked(idblock, kind=None):
+    """True when ``idblock`` was written by the add-on (as ``kind``, if given)."""
     value = idblock.get(MARK) if idblock is not None else None
     return value is not None and (kind is None or value == kind)
 
@@ -181,7 +174,7 @@ def field_node_group():
     missing on the field object are not written.
     """
     for tree in bpy.data.node_groups:
-        if _marked(tree, "display_field") and tree.get("lmdp_version") == FIELD_GROUP_VERSION:
+        if marked(tree, "display_field") and tree.get("lmdp_version") == FIELD_GROUP_VERSION:
             return tree
     tree = bpy.data.node_groups.new(FIELD_GROUP, 'GeometryNodeTree')
     tree[MARK] = "display_field"
@@ -206,11 +199,11 @@ def field_node_group():
     face_center.data_type = 'FLOAT_VECTOR'
     inward = nodes.new('ShaderNodeMix')
     inward.data_type = 'VECTOR'
-    _socket(inward.inputs, "Factor_Float").default_value = 0.02
+    socket_by_id(inward.inputs, "Factor_Float").default_value = 0.02
     links.new(position.outputs["Position"], face_center.inputs[0])
-    links.new(position.outputs["Position"], _socket(inward.inputs, "A_Vector"))
-    links.new(face_center.outputs[0], _socket(inward.inputs, "B_Vector"))
-    sample_position = _socket(inward.outputs, "Result_Vector")
+    links.new(position.outputs["Position"], socket_by_id(inward.inputs, "A_Vector"))
+    links.new(face_center.outputs[0], socket_by_id(inward.inputs, "B_Vector"))
+    sample_position = socket_by_id(inward.outputs, "Result_Vector")
     links.new(group_in.outputs["Geometry"], subdivide.inputs["Mesh"])
     links.new(group_in.outputs["Level"], subdivide.inputs["Level"])
     links.new(group_in.outputs["Field"], info.inputs["Object"])
@@ -251,7 +244,7 @@ def _socket_id(tree, name):
 def display_modifier(obj):
     """The add-on's "LMDP Display" modifier of ``obj`` or None."""
     for modifier in obj.modifiers:
-        if modifier.type == 'NODES' and _marked(modifier.node_group, "display_field"):
+        if modifier.type == 'NODES' and marked(modifier.node_group, "display_field"):
             return modifier
     return None
 
@@ -261,7 +254,7 @@ def _field_object_of(modifier):
         field = modifier[_socket_id(modifier.node_group, "Field")]
     except (KeyError, TypeError):
         return None
-    return field if isinstance(field, bpy.types.Object) and _marked(field, "display_field") else None
+    return field if isinstance(field, bpy.types.Object) and marked(field, "display_field") else None
 
 
 def mesh_from_triangles(name, vertices, triangles):
@@ -324,181 +317,29 @@ def remove_display_modifier(obj):
     return True
 
 
-# -- generated objects and materials ----------------------------------------------------------------------
-
-def _collection(context):
-    for collection in bpy.data.collections:
-        if _marked(collection, "collection"):
-            if collection.name not in context.scene.collection.children and \
-                    collection not in context.scene.collection.children_recursive:
-                context.scene.collection.children.link(collection)
-            return collection
-    collection = bpy.data.collections.new(COLLECTION)
-    collection[MARK] = "collection"
-    context.scene.collection.children.link(collection)
-    return collection
-
-
-def generated_object(kind):
-    """The add-on's object of ``kind`` ('policy', 'probe') or None."""
-    for obj in bpy.data.objects:
-        if _marked(obj, kind):
-            return obj
-    return None
-
-
-def set_generated_mesh_object(context, kind, name, vertices, triangles, colors, probability):
-    """Create or replace the object of ``kind`` (named ``name`` when created) with a mesh of
-    ``vertices``/``triangles`` carrying ``lmdp_arrow_color`` and ``lmdp_probability`` point
-    attributes and the emissive "LMDP Arrows" material. Returns the object."""
-    mesh = mesh_from_triangles(name, vertices, triangles)
-    color = mesh.attributes.new(ARROW_COLOR_ATTRIBUTE, 'FLOAT_COLOR', 'POINT')
-    color.data.foreach_set("color", np.ascontiguousarray(colors, dtype=np.float32).ravel())
-    prob = mesh.attributes.new("lmdp_probability", 'FLOAT', 'POINT')
-    prob.data.foreach_set("value", np.ascontiguousarray(probability, dtype=np.float32).ravel())
-    mesh.color_attributes.active_color_name = ARROW_COLOR_ATTRIBUTE
-    mesh.color_attributes.default_color_name = ARROW_COLOR_ATTRIBUTE
-    mesh.materials.append(arrow_material())
-    obj = generated_object(kind)
-    if obj is None:
-        obj = bpy.data.objects.new(name, mesh)
-        obj[MARK] = kind
-        obj[ARROWS_FLAG] = 1.0
-        _collection(context).objects.link(obj)
-    else:
-        old = obj.data
-        obj.data = mesh
-        if old is not None and old.users == 0:
-            bpy.data.meshes.remove(old)
-        if not obj.users_collection:
-            _collection(context).objects.link(obj)
-    return obj
-
-
-def remove_generated_object(kind):
-    obj = generated_object(kind)
-    if obj is None:
-        return False
-    mesh = obj.data
-    bpy.data.objects.remove(obj)
-    if mesh is not None and mesh.users == 0:
-        bpy.data.meshes.remove(mesh)
-    return True
-
-
-def _material(name, kind):
-    for material in bpy.data.materials:
-        if _marked(material, kind):
-            return material, False
-    material = bpy.data.materials.new(name)
-    material[MARK] = kind
-    return material, True
-
-
-def _attribute_color(tree, name, location):
-    node = tree.nodes.new("ShaderNodeAttribute")
-    node.attribute_type = 'GEOMETRY'
-    node.attribute_name = name
-    node.location = location
-    return node
-
-
-def arrow_material():
-    """"LMDP Arrows": emission of the arrows' ``lmdp_arrow_color`` (scene-linear, strength 1, so
-    the Standard view transform shows the colour map), with a little diffuse shading for shape."""
-    material, new = _material(ARROW_MATERIAL, "arrow_material")
-    if not new:
-        return material
-    tree = material.node_tree
-    tree.nodes.clear()
-    out = tree.nodes.new("ShaderNodeOutputMaterial")
-    out.location = (600, 0)
-    color = _attribute_color(tree, ARROW_COLOR_ATTRIBUTE, (-400, 0))
-    emission = tree.nodes.new("ShaderNodeEmission")
-    emission.location = (0, 100)
-    diffuse = tree.nodes.new("ShaderNodeBsdfDiffuse")
-    diffuse.location = (0, -100)
-    add = tree.nodes.new("ShaderNodeMixShader")
-    add.location = (300, 0)
-    add.inputs["Fac"].default_value = 0.2
-    tree.links.new(color.outputs["Color"], emission.inputs["Color"])
-    tree.links.new(color.outputs["Color"], diffuse.inputs["Color"])
-    tree.links.new(emission.outputs[0], add.inputs[1])
-    tree.links.new(diffuse.outputs[0], add.inputs[2])
-    tree.links.new(add.outputs[0], out.inputs["Surface"])
-    material.diffuse_color = (1.0, 0.6, 0.1, 1.0)
-    return material
-
-
-def _socket(sockets, identifier):
+def socket_by_id(sockets, identifier):
+    """The socket of ``sockets`` whose identifier is ``identifier`` (names repeat on Mix nodes)."""
     for socket in sockets:
         if socket.identifier == identifier:
             return socket
     raise KeyError(identifier)
 
 
-def render_material():
-    """"LMDP Desirability": the render override that shows the field (see module docstring).
-
-    Emission (strength 1) of ``lmdp_z_color`` on objects flagged ``lmdp_display``, of
-    ``lmdp_arrow_color`` on the arrow objects, and a neutral grey elsewhere (lights included).
-    """
-    material, new = _material(RENDER_MATERIAL, "render_material")
-    if not new:
-        return material
-    tree = material.node_tree
-    tree.nodes.clear()
-    out = tree.nodes.new("ShaderNodeOutputMaterial")
-    out.location = (900, 0)
-    field = _attribute_color(tree, COLOR_ATTRIBUTE, (-300, 200))
-    arrows = _attribute_color(tree, ARROW_COLOR_ATTRIBUTE, (-300, -100))
-    flag = tree.nodes.new("ShaderNodeAttribute")
-    flag.attribute_type = 'OBJECT'
-    flag.attribute_name = DISPLAY_FLAG
-    flag.location = (-300, 450)
-    is_arrow = tree.nodes.new("ShaderNodeAttribute")
-    is_arrow.attribute_type = 'OBJECT'
-    is_arrow.attribute_name = ARROWS_FLAG
-    is_arrow.location = (-300, -350)
-    first = tree.nodes.new("ShaderNodeMix")
-    first.data_type = 'RGBA'
-    first.location = (100, 250)
-    _socket(first.inputs, "A_Color").default_value = (NEUTRAL_GREY, NEUTRAL_GREY, NEUTRAL_GREY, 1.0)
-    tree.links.new(flag.outputs["Fac"], _socket(first.inputs, "Factor_Float"))
-    tree.links.new(field.outputs["Color"], _socket(first.inputs, "B_Color"))
-    second = tree.nodes.new("ShaderNodeMix")
-    second.data_type = 'RGBA'
-    second.location = (350, 0)
-    tree.links.new(is_arrow.outputs["Fac"], _socket(second.inputs, "Factor_Float"))
-    tree.links.new(_socket(first.outputs, "Result_Color"), _socket(second.inputs, "A_Color"))
-    tree.links.new(arrows.outputs["Color"], _socket(second.inputs, "B_Color"))
-    emission = tree.nodes.new("ShaderNodeEmission")
-    emission.location = (600, 0)
-    tree.links.new(_socket(second.outputs, "Result_Color"), emission.inputs["Color"])
-    tree.links.new(emission.outputs[0], out.inputs["Surface"])
-    return material
+def field_attributes(vf):
+    """The point attributes of a ``vertex_field.VertexField``: {name: values}."""
+    return {"lmdp_z": vf.z, "lmdp_z_color": vf.color, "lmdp_quantity": vf.quantity,
+            "lmdp_z_rgb": vf.z_rgb, "lmdp_log10_z": vf.log10_z}
 
 
-def clear_all(context):
-    """Remove everything the add-on wrote into the file; returns a short summary."""
-    counts = {"attributes": 0, "modifiers": 0, "objects": 0}
-    for obj in bpy.data.objects:
-        if obj.type == 'MESH' and obj.library is None and obj.data is not None and obj.data.library is None:
-            if display_modifier(obj) is not None:
-                remove_display_modifier(obj)
-                counts["modifiers"] += 1
-        if DISPLAY_FLAG in obj.keys() and obj.library is None:
-            del obj[DISPLAY_FLAG]
-    for mesh in bpy.data.meshes:
-        if mesh.library is None and remove_point_attributes(mesh):
-            counts["attributes"] += 1
-    for kind in ("policy", "probe"):
-        if remove_generated_object(kind):
-            counts["objects"] += 1
-    for view_layer in context.scene.view_layers:
-        if _marked(view_layer.material_override, "render_material"):
-            view_layer.material_override = None
-    for obj in list(bpy.data.objects):  # orphaned field objects (their modifier was deleted)
-        if _marked(obj, "display_field") and obj.users == 0:
-            bpy.data.objects.remove(obj)
-    return counts
+def show_field(obj, fields, level, lattice):
+    """Write ``fields`` (the vertex field, and the lattice field when ``lattice`` (points,
+    normals, triangles) is given) on ``obj``: point attributes, the display flag and, with a
+    lattice, the LMDP Display modifier at ``level`` (removed without). Returns the lattice nodes."""
+    write_point_attributes(obj.data, field_attributes(fields[0]))
+    obj[DISPLAY_FLAG] = 1.0
+    if lattice is None:
+        remove_display_modifier(obj)
+        return 0
+    points, _, triangles = lattice
+    set_display_modifier(obj, level, to_local(obj, points), triangles, field_attributes(fields[1]))
+    return len(points)

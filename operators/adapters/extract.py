@@ -291,6 +291,102 @@ def _is_hidden(obj, view_layer):
             or not obj.visible_get(view_layer=view_layer))
 
 
+class _SceneBuilder:
+    """Collects the objects' world triangles, materials and UVs into one :class:`SceneArrays`."""
+
+    def __init__(self):
+        self.names, self.carries, self.has_uv = [], [], []
+        self.parts = []  # (vertices, triangles, albedo, emission, two_sided, uv) per object
+        self.offset = 0
+
+    def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv):
+        """One object: world vertices (V, 3), triangles (T, 3) into them, per-triangle albedo /
+        emission (T, 3) and two-sidedness (T,), UVs (T, 3, 2) or None."""
+        self.names.append(name)
+        self.carries.append(carries_states)
+        self.has_uv.append(uv is not None)
+        self.parts.append((world, tris + self.offset, np.full(len(tris), len(self.names) - 1, dtype=np.int32),
+                           albedo, emission, two_sided,
+                           uv if uv is not None else np.zeros((len(tris), 3, 2), np.float32)))
+        self.offset += len(world)
+
+    def scene_arrays(self, world_radiance, warnings):
+        if self.parts:
+            vertices, triangles, triangle_object, albedo, emission, two_sided, triangle_uv = \
+                (np.concatenate(column) for column in zip(*self.parts))
+        else:
+            vertices = np.zeros((0, 3))
+            triangles = np.zeros((0, 3), dtype=np.int64)
+            triangle_object = np.zeros(0, dtype=np.int32)
+            albedo = emission = np.zeros((0, 3))
+            two_sided = np.zeros(0, dtype=bool)
+            triangle_uv = np.zeros((0, 3, 2), dtype=np.float32)
+        return SceneArrays(
+            vertices=vertices,
+            triangles=triangles,
+            triangle_object=triangle_object,
+            triangle_albedo=albedo,
+            triangle_emission=emission,
+            object_names=self.names,
+            object_carries_states=np.array(self.carries, dtype=bool),
+            world_radiance=world_radiance,
+            triangle_emission_two_sided=two_sided,
+            triangle_uv=triangle_uv,
+            object_has_uv=np.array(self.has_uv, dtype=bool),
+            warnings=warnings,
+        )
+
+
+def _add_light(builder, name, inst, warnings, skipped_lights):
+    """An AREA light as a one-sided emitting quad; other lights are listed in ``skipped_lights``."""
+    light = inst.object.data
+    if light.type != 'AREA':
+        skipped_lights.append(f"'{name}' ({light.type.lower()})")
+        return
+    if light.cycles.is_portal:
+        warnings.append(f"Light '{name}' is a portal: ignored")
+        return
+    corners, radiance = _area_light_quad(name, inst.matrix_world, light, warnings)
+    if not np.any(radiance > 0):
+        return
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    builder.add(name, False, corners, tris, np.zeros((2, 3)), np.tile(radiance, (2, 1)),
+                np.zeros(2, dtype=bool), None)
+
+
+def _add_mesh(builder, name, inst, carries_states, reader, warnings):
+    """The evaluated mesh of ``inst`` in world space, with its materials and render UV map."""
+    obj = inst.object
+    own_mesh = obj.type != 'MESH'
+    mesh = obj.to_mesh() if own_mesh else obj.data
+    try:
+        if mesh is None or len(mesh.polygons) == 0:
+            return
+        matrix = inst.matrix_world
+        world, tris, loops, poly = _mesh_arrays(mesh, matrix)
+        if len(tris) == 0:
+            return
+        if np.linalg.det(np.asarray(matrix, dtype=np.float64)[:3, :3]) < 0:
+            # Mirrored objects: Cycles keeps their normals as displayed, so flip the winding.
+            tris = tris[:, [0, 2, 1]]
+            loops = loops[:, [0, 2, 1]]
+        uv = _render_uv(mesh, loops)
+        if uv is None and carries_states:
+            warnings.append(f"Object '{name}' has no UV map")
+        material_index = np.empty(len(mesh.polygons), dtype=np.int32)
+        mesh.polygons.foreach_get("material_index", material_index)
+        slots = [slot.material for slot in obj.material_slots]
+        per_slot = [reader.material(m) for m in slots] or [reader.material(None)]
+        slot_of_tri = np.clip(material_index[poly], 0, len(per_slot) - 1)
+        albedo_table = np.array([a for a, _ in per_slot])
+        emission_table = np.array([e for _, e in per_slot])
+        builder.add(name, carries_states, world, tris, albedo_table[slot_of_tri],
+                    emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv)
+    finally:
+        if own_mesh:
+            obj.to_mesh_clear()
+
+
 def extract_scene(context, selected_objects, depsgraph=None):
     """:class:`SceneArrays` of every visible mesh and area light in ``context``'s view layer.
 
@@ -303,31 +399,11 @@ def extract_scene(context, selected_objects, depsgraph=None):
     if depsgraph is None:
         depsgraph = context.evaluated_depsgraph_get()
     view_layer = depsgraph.view_layer
-    scene = depsgraph.scene
     selected = {getattr(o, "original", o).name for o in (selected_objects or ())}
     warnings = []
     reader = _MaterialReader(warnings)
-
-    names, carries, has_uv = [], [], []
-    verts_all, tris_all, obj_all, alb_all, em_all, two_all, uv_all = [], [], [], [], [], [], []
-    offset = 0
+    builder = _SceneBuilder()
     instance_count = {}
-
-    def add(name, carries_states, world, tris, albedo, emission, two_sided, uv):
-        nonlocal offset
-        index = len(names)
-        names.append(name)
-        carries.append(carries_states)
-        has_uv.append(uv is not None)
-        verts_all.append(world)
-        tris_all.append(tris + offset)
-        offset += len(world)
-        obj_all.append(np.full(len(tris), index, dtype=np.int32))
-        alb_all.append(albedo)
-        em_all.append(emission)
-        two_all.append(two_sided)
-        uv_all.append(uv if uv is not None else np.zeros((len(tris), 3, 2), np.float32))
-
     skipped_lights = []
     for inst in depsgraph.object_instances:
         obj = inst.object
@@ -341,82 +417,10 @@ def extract_scene(context, selected_objects, depsgraph=None):
         else:
             name = obj.original.name
         if obj.type == 'LIGHT':
-            light = obj.data
-            if light.type != 'AREA':
-                skipped_lights.append(f"'{name}' ({light.type.lower()})")
-                continue
-            if light.cycles.is_portal:
-                warnings.append(f"Light '{name}' is a portal: ignored")
-                continue
-            corners, radiance = _area_light_quad(name, inst.matrix_world, light, warnings)
-            if not np.any(radiance > 0):
-                continue
-            tris = np.array([[0, 1, 2], [0, 2, 3]])
-            add(name, False, corners, tris, np.zeros((2, 3)), np.tile(radiance, (2, 1)),
-                np.zeros(2, dtype=bool), None)
-            continue
-        if obj.type not in GEOMETRY_TYPES:
-            continue
-        own_mesh = obj.type != 'MESH'
-        mesh = obj.to_mesh() if own_mesh else obj.data
-        try:
-            if mesh is None or len(mesh.polygons) == 0:
-                continue
-            matrix = inst.matrix_world
-            world, tris, loops, poly = _mesh_arrays(mesh, matrix)
-            if len(tris) == 0:
-                continue
-            if np.linalg.det(np.asarray(matrix, dtype=np.float64)[:3, :3]) < 0:
-                # Mirrored objects: Cycles keeps their normals as displayed, so flip the winding.
-                tris = tris[:, [0, 2, 1]]
-                loops = loops[:, [0, 2, 1]]
-            uv = _render_uv(mesh, loops)
-            if uv is None and top.name in selected:
-                warnings.append(f"Object '{name}' has no UV map")
-            material_index = np.empty(len(mesh.polygons), dtype=np.int32)
-            mesh.polygons.foreach_get("material_index", material_index)
-            slots = [slot.material for slot in obj.material_slots]
-            per_slot = [reader.material(m) for m in slots] or [reader.material(None)]
-            slot_of_tri = np.clip(material_index[poly], 0, len(per_slot) - 1)
-            albedo_table = np.array([a for a, _ in per_slot])
-            emission_table = np.array([e for _, e in per_slot])
-            add(name, top.name in selected, world, tris, albedo_table[slot_of_tri],
-                emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv)
-        finally:
-            if own_mesh:
-                obj.to_mesh_clear()
-
+            _add_light(builder, name, inst, warnings, skipped_lights)
+        elif obj.type in GEOMETRY_TYPES:
+            _add_mesh(builder, name, inst, top.name in selected, reader, warnings)
     if skipped_lights:
         warnings.append("Only area lights are modelled; skipped " + ", ".join(skipped_lights)
                         + ": use an area light or an emissive mesh instead")
-    world_radiance = reader.world(scene.world)
-
-    if names:
-        vertices = np.concatenate(verts_all)
-        triangles = np.concatenate(tris_all)
-        triangle_object = np.concatenate(obj_all)
-        albedo = np.concatenate(alb_all)
-        emission = np.concatenate(em_all)
-        two_sided = np.concatenate(two_all)
-        triangle_uv = np.concatenate(uv_all)
-    else:
-        vertices = np.zeros((0, 3))
-        triangles = np.zeros((0, 3), dtype=np.int64)
-        triangle_object = np.zeros(0, dtype=np.int32)
-        albedo = emission = np.zeros((0, 3))
-        two_sided = np.zeros(0, dtype=bool)
-        triangle_uv = np.zeros((0, 3, 2), dtype=np.float32)
-    return SceneArrays(
-        vertices=vertices,
-        triangles=triangles,
-        triangle_object=triangle_object,
-        triangle_albedo=albedo,
-        triangle_emission=emission,
-        object_names=names,
-        object_carries_states=np.array(carries, dtype=bool),
-        world_radiance=world_radiance,
-        triangle_emission_two_sided=two_sided,
-        triangle_uv=triangle_uv,
-        object_has_uv=np.array(has_uv, dtype=bool),
-        warnings=warnings,
-    )
+    return builder.scene_arrays(reader.world(depsgraph.scene.world), warnings)

@@ -1,24 +1,27 @@
-"""Operators of the LMDP stages: sample states, build dynamics, solve, export.
+"""Operators of the LMDP stages: sample states, build dynamics, solve, Run All, export.
 
-Each operator is thin (``jobs.EngineJob``): ``prepare`` reads Blender data into engine arrays,
-``compute`` calls :mod:`lmdp_addon.model.pipeline` (no bpy), ``apply`` stores the result in the
-scene's session. The scene is captured (``SceneArrays``) when the states are sampled; later
-stages work on that snapshot, so edit the scene and sample again to see the change.
+Each operator is thin (``jobs.EngineJob``): ``prepare`` reads Blender data and runs the stage's
+checks, ``compute`` calls the stage's :mod:`lmdp_addon.model.pipeline` function (no bpy; the
+checks are not run again there), ``apply`` stores the result in the scene's session, whose
+``LMDPResult`` the next stage reads. The scene is captured (``SceneArrays``) when the states
+are sampled; later stages work on that snapshot, so edit the scene and sample again to see the
+change.
 """
 import os
+from dataclasses import replace
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
+from ...lmdp_addon.errors import SceneError
 from ...lmdp_addon.model import pipeline
-from ...lmdp_addon.model.dynamics import build_passive_dynamics, check_budget
-from ...lmdp_addon.errors import SceneError, StageOrderError
 from ...lmdp_addon.model.export import export_npz
-from ..common import report_error, report_warnings, selected_meshes
 from ..adapters.extract import extract_scene
-from ..jobs import EngineJob
-from .bake import HOOK_UP_ITEMS, apply_bake, compute_bake, planned_bake_inputs
+from ..adapters.materials import HOOK_UP_ITEMS
+from ..bake_steps import apply_bake, compute_bake, planned_bake_inputs
+from ..common import report_error, report_warnings, selected_meshes
+from ..jobs import EngineJob, ready
 from ..session import format_bytes, session_for
 
 
@@ -30,14 +33,6 @@ def capture_scene(context):
     return scene, [obj.name for obj in meshes]
 
 
-def store_scene(context, scene, names):
-    """Keep the captured scene in the session (clears every result computed from the old one)."""
-    session = session_for(context.scene)
-    session.store("scene_arrays", scene)
-    session.object_names = tuple(names)
-    return session
-
-
 class LMDP_OT_sample_states(EngineJob, bpy.types.Operator):
     """Sample surface points on the selected meshes and split their hemispheres into strata
     (the LMDP states, thesis 3.1.1)"""
@@ -45,20 +40,26 @@ class LMDP_OT_sample_states(EngineJob, bpy.types.Operator):
     bl_idname = "lmdp.sample_states"
     bl_label = "Sample States"
     bl_options = {'REGISTER'}
-    stage = "sample"
+    stage = ""  # run_sample reports the "sample" stage
+
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, selection=True)
 
     def prepare(self, context):
         return capture_scene(context)
 
     def compute(self, inputs, settings, progress):
         scene, names = inputs
-        states, _ = pipeline.run_sample(scene, settings, _Nested(progress))
+        states, _ = pipeline.run_sample(scene, settings, progress)
         return scene, names, states
 
     def apply(self, context, result):
         scene, names, states = result
-        session = store_scene(context, scene, names)
-        session.store("states", states, seconds=self.compute_seconds, settings=self.settings)
+        session = session_for(context.scene)
+        session.store("scene", scene)
+        session.object_names = tuple(names)
+        session.store("states", states, seconds=self.compute_seconds)
         report_warnings(self, scene.warnings)
         return f"Sampled {states.summary()} on {', '.join(names)}"
 
@@ -70,27 +71,27 @@ class LMDP_OT_build_dynamics(EngineJob, bpy.types.Operator):
     bl_idname = "lmdp.build_dynamics"
     bl_label = "Build Dynamics"
     bl_options = {'REGISTER'}
-    stage = "build"
+    stage = ""  # run_build reports the "build" stage
+
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, selection=True, stage="states")
 
     def prepare(self, context):
         selected_meshes(context)
         session = session_for(context.scene)
         states = session.require("states")
-        scene = session.require("scene_arrays")
-        s = self.settings
-        check_budget(states.n_points, states.n_strata, s.rays_per_stratum, s.memory_budget_gb,
-                     s.light_samples, scene.n_triangles)
+        scene = session.require("scene")
+        pipeline.check_build(scene, self.settings, states)
         return scene, states
 
     def compute(self, inputs, settings, progress):
         scene, states = inputs
-        return build_passive_dynamics(scene, states, settings.rays_per_stratum, seed=settings.seed,
-                                      progress=progress, memory_budget_gb=settings.memory_budget_gb,
-                                      light_samples=settings.light_samples)
+        dynamics, _ = pipeline.run_build(scene, states, settings, progress, check=False)
+        return dynamics
 
     def apply(self, context, dynamics):
-        session = session_for(context.scene)
-        session.store("dynamics", dynamics, seconds=self.compute_seconds, settings=self.settings)
+        session_for(context.scene).store("dynamics", dynamics, seconds=self.compute_seconds)
         report_warnings(self, dynamics.warnings)
         rate = dynamics.rays / max(self.compute_seconds, 1e-9)
         return (f"Built {dynamics.summary()} in {self.compute_seconds:.2f} s "
@@ -104,30 +105,38 @@ class LMDP_OT_solve(EngineJob, bpy.types.Operator):
     bl_idname = "lmdp.solve"
     bl_label = "Solve"
     bl_options = {'REGISTER'}
-    stage = "solve"
+    stage = ""  # run_solve reports the "solve" stage
+
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, selection=True, stage="dynamics")
 
     def prepare(self, context):
         selected_meshes(context)
         session = session_for(context.scene)
         dynamics = session.require("dynamics")
-        return session.require("scene_arrays"), session.require("states"), dynamics
+        return session.require("scene"), session.require("states"), dynamics
 
     def compute(self, inputs, settings, progress):
-        scene, states, dynamics = inputs
-        lmdp, solution, _ = pipeline.run_solve(scene, states, dynamics, settings, _Nested(progress))
+        lmdp, solution, _ = pipeline.run_solve(*inputs, settings, progress)
         return lmdp, solution
 
     def apply(self, context, result):
         lmdp, solution = result
         session = session_for(context.scene)
-        session.store("costs", lmdp, settings=self.settings)
-        session.store("solution", solution, seconds=self.compute_seconds, settings=self.settings)
-        if not solution.converged:
-            self.report({'WARNING'}, f"The {solution.solver} solver did not converge: {solution.message}")
-        if solution.n_unreachable:
-            self.report({'WARNING'}, f"{solution.n_unreachable} states cannot reach any light (z = 0, J = inf); "
-                                     "they keep the passive dynamics as their policy")
+        session.store("lmdp", lmdp)
+        session.store("solution", solution, seconds=self.compute_seconds)
+        report_solution(self, solution)
         return solution.summary() + (f", λ = {lmdp.lambda_:.4g}" if lmdp.cost_mode == "THESIS" else "")
+
+
+def report_solution(operator, solution):
+    """Warn when the solver did not converge or states cannot reach a light."""
+    if not solution.converged:
+        operator.report({'WARNING'}, f"The {solution.solver} solver did not converge: {solution.message}")
+    if solution.n_unreachable:
+        operator.report({'WARNING'}, f"{solution.n_unreachable} states cannot reach any light (z = 0, J = inf); "
+                                     "they keep the passive dynamics as their policy")
 
 
 class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
@@ -137,7 +146,7 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
     bl_idname = "lmdp.run_pipeline"
     bl_label = "Run All"
     bl_options = {'REGISTER', 'UNDO'}  # Show and Bake write Blender data (see lmdp.bake)
-    stage = ""  # compute reports its own stages
+    stage = ""  # run_all and the bake report their own stages
 
     show: BoolProperty(
         name="Show Desirability",
@@ -156,40 +165,33 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
         items=HOOK_UP_ITEMS, default='NONE',
     )
 
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, selection=True)
+
     def prepare(self, context):
         scene, names = capture_scene(context)
-        s = self.settings
-        check_budget(s.point_count, s.strata_count, s.rays_per_stratum, s.memory_budget_gb,
-                     s.light_samples, scene.n_triangles)
+        pipeline.check_build(scene, self.settings)
         # Every bake check runs now, before any work (a mesh without UV map is reported here).
-        bake = planned_bake_inputs(scene, names, s) if self.bake else None
+        bake = planned_bake_inputs(scene, names, self.settings) if self.bake else None
         return scene, names, bake
 
     def compute(self, inputs, settings, progress):
         scene, names, bake = inputs
-        result = pipeline.run_all(scene, settings, progress)
-        baked = None
-        if bake is not None:
-            bake.lmdp = result
-            bake.precompute_seconds = dict(result.seconds)
-            baked = compute_bake(bake, settings, progress)
+        result = pipeline.run_all(scene, settings, progress, check=False)
+        baked = compute_bake(replace(bake, lmdp=result), settings, progress) if bake is not None else None
         return names, result, baked
 
     def apply(self, context, result):
         names, r, baked = result
-        session = store_scene(context, r.scene, names)
-        session.store("states", r.states, seconds=r.seconds["sample"], settings=self.settings)
-        session.store("dynamics", r.dynamics, seconds=r.seconds["build"], settings=self.settings)
-        session.store("costs", r.lmdp, settings=self.settings)
-        session.store("solution", r.solution, seconds=r.seconds["solve"], settings=self.settings)
+        session = session_for(context.scene)
+        session.store_result(r, names)
         report_warnings(self, list(r.scene.warnings) + list(r.dynamics.warnings))
         if not r.solution.converged:
             self.report({'WARNING'}, f"The {r.solution.solver} solver did not converge: {r.solution.message}")
-        total = sum(r.seconds.values())
-        message = f"LMDP solved on {', '.join(names)} in {total:.2f} s: {r.solution.summary()}"
+        message = f"LMDP solved on {', '.join(names)} in {sum(r.seconds.values()):.2f} s: {r.solution.summary()}"
         if baked is not None:
             bake_message, warnings = apply_bake(context, baked, self.settings, self.hook_up)
-            session.store("bake", baked, seconds=baked.seconds.get("bake"), settings=self.settings)
             report_warnings(self, warnings)
             message += f"; {bake_message}"
         if self.show:
@@ -214,12 +216,9 @@ class LMDP_OT_export_npz(bpy.types.Operator, ExportHelper):
         description="Where to write the .npz file (empty: lmdp.npz in the Output Directory)",
         subtype='FILE_PATH', default="")
 
-    def invoke(self, context, event):
-        try:
-            session_for(context.scene).require("solution")
-        except StageOrderError as error:
-            return report_error(self, error)
-        return ExportHelper.invoke(self, context, event)
+    @classmethod
+    def poll(cls, context):
+        return ready(cls, context, stage="solution")
 
     def execute(self, context):
         try:
@@ -237,28 +236,12 @@ class LMDP_OT_export_npz(bpy.types.Operator, ExportHelper):
             folder = os.path.dirname(path)
             if folder and not os.path.isdir(folder):
                 raise SceneError(f"The folder {folder} does not exist: create it or pick another file path")
-            export_npz(path, session.require("states"), session.require("dynamics"), session.require("costs"),
+            export_npz(path, session.require("states"), session.require("dynamics"), session.require("lmdp"),
                        solution, extra={"objects": list(session.object_names), "blend": bpy.data.filepath})
         except Exception as error:
             return report_error(self, error)
         self.report({'INFO'}, f"Exported the LMDP to {path}")
         return {'FINISHED'}
-
-
-class _Nested:
-    """Progress proxy for a stage called inside an EngineJob that already began the stage."""
-
-    def __init__(self, progress):
-        self._progress = progress
-
-    def begin(self, stage):
-        pass
-
-    def update(self, fraction, message=""):
-        self._progress.update(fraction, message)
-
-    def end(self, message=""):
-        return 0.0
 
 
 classes = (

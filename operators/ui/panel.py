@@ -1,38 +1,33 @@
 """The "LMDP" tab of the 3D viewport sidebar (N panel): Sample, Build, Solve, Show, Bake.
 
-Each section is greyed out until the session holds its inputs (states before Build, dynamics
-before Solve, a solution before Show), shows only the operators that are registered, so the
-panel works while later modules are missing, and under its button the stage's status: counts,
-nnz and memory, wall time, residual. Show holds the legend of the latest Show Desirability
+Each section draws its settings and its operator buttons (only the operators that are
+registered, so the panel works while later modules are missing); an operator that cannot run
+yet (no mesh selected, Solve first ...) is greyed out by its own ``poll``, with the reason as
+its tooltip. Under the button, the stage's status: counts, nnz and memory, wall time, residual. Show holds the legend of the latest Show Desirability
 (quantity, colour swatches with their values, the states' full range) and the policy tools.
 Drawing reads the session with ``session.peek`` and never writes Blender data (the legend's
 swatch icons are previews, not data).
 """
 import bpy
 
-from ..common import operator_available, selected_meshes
+from ..common import operator_available
 from ..jobs import running_job
 from ..session import format_bytes, format_seconds, peek
 
 
-def _operator(layout, idname, text=None, icon='NONE', enabled=True):
+#: How the main panel's status lines name the session's stages (default: capitalised).
+_STAGE_LABELS = {"lmdp": "LMDP"}
+
+
+def _operator(layout, idname, text=None, icon='NONE'):
     """Draw the button of ``idname`` if that operator is registered; returns True if drawn."""
     if not operator_available(idname):
         return False
     row = layout.row()
-    row.enabled = enabled
     if text is None:
         row.operator(idname, icon=icon)
     else:
         row.operator(idname, text=text, icon=icon)
-    return True
-
-
-def _has_mesh_selection(context):
-    try:
-        selected_meshes(context)
-    except Exception:
-        return False
     return True
 
 
@@ -143,7 +138,6 @@ class LMDP_PT_main(bpy.types.Panel):
         if operator_available("lmdp.run_pipeline"):
             props = context.scene.lmdp
             row = layout.row(align=True)
-            row.enabled = job is None and _has_mesh_selection(context)
             op = row.operator("lmdp.run_pipeline", text="Run All", icon='PLAY')
             op.show, op.bake = props.run_all_show, props.run_all_bake
             row.prop(props, "run_all_show", toggle=True)
@@ -158,7 +152,7 @@ class LMDP_PT_main(bpy.types.Panel):
             return
         column = box.column(align=True)
         for stage, text in session.status_lines():
-            column.label(text=f"{stage.replace('_', ' ').capitalize()}: {text}")
+            column.label(text=f"{_STAGE_LABELS.get(stage, stage.capitalize())}: {text}")
         if session.timings:
             column.label(text=f"Total: {format_seconds(sum(session.timings.values()))}")
         if session.last_message:
@@ -177,18 +171,11 @@ class _LMDPSection:
         done = bool(self.done_stage) and _has(context, self.done_stage)
         self.layout.label(icon='CHECKMARK' if done else 'BLANK1')
 
-    @staticmethod
-    def ready(context):
-        """True when this section's inputs exist."""
-        return True
-
     def draw(self, context):
         layout = self.layout
         layout.use_property_split = True
         layout.use_property_decorate = False
-        ready = self.ready(context) and running_job() is None
-        layout.active = ready
-        self.draw_section(context, layout, context.scene.lmdp, ready)
+        self.draw_section(context, layout, context.scene.lmdp)
 
 
 class LMDP_PT_sample(_LMDPSection, bpy.types.Panel):
@@ -196,19 +183,13 @@ class LMDP_PT_sample(_LMDPSection, bpy.types.Panel):
     bl_label = "Sample"
     done_stage = "states"
 
-    @staticmethod
-    def ready(context):
-        return _has_mesh_selection(context)
-
-    def draw_section(self, context, layout, props, ready):
+    def draw_section(self, context, layout, props):
         column = layout.column(align=True)
         column.prop(props, "point_count")
         column.prop(props, "strata_u")
         column.prop(props, "strata_v")
         layout.prop(props, "seed")
-        _operator(layout, "lmdp.sample_states", icon='STICKY_UVS_DISABLE', enabled=ready)
-        if not ready and running_job() is None:
-            layout.label(text="Select at least one mesh object", icon='ERROR')
+        _operator(layout, "lmdp.sample_states", icon='STICKY_UVS_DISABLE')
         states = _result(context, "states")
         if states is not None and hasattr(states, "n_states"):
             _status(layout, f"{states.n_points:,} points x {states.n_strata} strata = "
@@ -220,18 +201,14 @@ class LMDP_PT_build(_LMDPSection, bpy.types.Panel):
     bl_label = "Build"
     done_stage = "dynamics"
 
-    @staticmethod
-    def ready(context):
-        return _has(context, "states")
-
-    def draw_section(self, context, layout, props, ready):
+    def draw_section(self, context, layout, props):
         layout.prop(props, "rays_per_stratum")
         layout.prop(props, "cost_mode")
         row = layout.row()
         row.active = props.cost_mode == 'THESIS'
         row.prop(props, "epsilon")
         layout.prop(props, "memory_budget_gb")
-        _operator(layout, "lmdp.build_dynamics", icon='LIGHT', enabled=ready)
+        _operator(layout, "lmdp.build_dynamics", icon='LIGHT')
         dynamics = _result(context, "dynamics")
         if dynamics is not None and hasattr(dynamics, "P"):
             _status(layout, f"P: {dynamics.n_points:,} x {dynamics.n_columns:,}, nnz {dynamics.P.nnz:,}, "
@@ -243,11 +220,7 @@ class LMDP_PT_solve(_LMDPSection, bpy.types.Panel):
     bl_label = "Solve"
     done_stage = "solution"
 
-    @staticmethod
-    def ready(context):
-        return _has(context, "dynamics")
-
-    def draw_section(self, context, layout, props, ready):
+    def draw_section(self, context, layout, props):
         row = layout.row()
         row.active = props.cost_mode == 'THESIS'
         row.prop(props, "lambda_scale")
@@ -258,7 +231,7 @@ class LMDP_PT_solve(_LMDPSection, bpy.types.Panel):
         row = layout.row()
         row.active = props.solver != 'DIRECT'
         row.prop(props, "max_iterations")
-        _operator(layout, "lmdp.solve", icon='PLAY', enabled=ready)
+        _operator(layout, "lmdp.solve", icon='PLAY')
         solution = _result(context, "solution")
         if solution is not None and hasattr(solution, "residual"):
             state = "converged" if solution.converged else "NOT converged"
@@ -274,11 +247,7 @@ class LMDP_PT_show(_LMDPSection, bpy.types.Panel):
     bl_label = "Show"
     done_stage = "display"
 
-    @staticmethod
-    def ready(context):
-        return _has(context, "solution")
-
-    def draw_section(self, context, layout, props, ready):
+    def draw_section(self, context, layout, props):
         layout.label(text="Desirability", icon='VPAINT_HLT')
         layout.prop(props, "display_quantity")
         layout.prop(props, "display_colormap")
@@ -286,10 +255,9 @@ class LMDP_PT_show(_LMDPSection, bpy.types.Panel):
         row = layout.row()
         row.active = props.display_subdivide
         row.prop(props, "display_max_level")
-        _operator(layout, "lmdp.show_desirability", icon='VPAINT_HLT', enabled=ready)
+        _operator(layout, "lmdp.show_desirability", icon='VPAINT_HLT')
         if operator_available("lmdp.view_desirability"):
             row = layout.row(align=True)
-            row.enabled = _has(context, "display")
             row.operator("lmdp.view_desirability", text="Viewport", icon='SHADING_SOLID').target = 'VIEWPORT'
             row.operator("lmdp.view_desirability", text="Render", icon='SHADING_RENDERED').target = 'RENDER'
         record = _result(context, "display")
@@ -304,12 +272,10 @@ class LMDP_PT_show(_LMDPSection, bpy.types.Panel):
         layout.prop(props, "show_policy_arrows")
         if operator_available("lmdp.show_policy"):
             row = layout.row(align=True)
-            row.enabled = ready
             row.operator("lmdp.show_policy", icon='FORWARD').as_mesh = False
             row.operator("lmdp.show_policy", text="As Mesh", icon='MESH_DATA').as_mesh = True
         if operator_available("lmdp.probe_policy"):
             row = layout.row(align=True)
-            row.enabled = ready
             op = row.operator("lmdp.probe_policy", text="Probe 3D Cursor", icon='PIVOT_CURSOR')
             op.use_cursor, op.pick = True, False
             op = row.operator("lmdp.probe_policy", text="Pick", icon='EYEDROPPER')
@@ -325,13 +291,7 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
     bl_label = "Bake"
     done_stage = "bake"
 
-    @staticmethod
-    def ready(context):
-        if context.scene.lmdp.bake_mode == 'UNGUIDED':
-            return _has_mesh_selection(context)
-        return _has(context, "solution")
-
-    def draw_section(self, context, layout, props, ready):
+    def draw_section(self, context, layout, props):
         layout.prop(props, "bake_mode")
         column = layout.column(align=True)
         column.prop(props, "bake_resolution")
@@ -342,10 +302,9 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row.prop(props, "guide_fraction")
         layout.prop(props, "max_bounces")
         layout.prop(props, "output_dir")
-        if not _operator(layout, "lmdp.bake", icon='RENDER_STILL', enabled=ready):
+        if not _operator(layout, "lmdp.bake", icon='RENDER_STILL'):
             _status(layout, "The bake operator is not part of this build", icon='INFO')
-        _operator(layout, "lmdp.export_npz", text="Export Matrices (.npz)", icon='EXPORT',
-                  enabled=_has(context, "dynamics"))
+        _operator(layout, "lmdp.export_npz", text="Export Matrices (.npz)", icon='EXPORT')
 
 
 classes = (

@@ -214,12 +214,12 @@ def test_scene_without_light_is_refused(lit_scene):
 def test_zero_resolution_cannot_be_set_and_is_refused_by_the_engine(cornell, lmdp_ext):
     cornell.lmdp.bake_resolution = 0
     assert cornell.lmdp.bake_resolution == 1  # the property's minimum
-    ops_bake = lmdp_ext.sub("operators.ops.bake")
+    bake_steps = lmdp_ext.sub("operators.bake_steps")
     settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
     settings.bake_resolution = 0  # a script can still pass 0 to the engine pieces
     only("Floor")
     with pytest.raises(lmdp_ext.sub("lmdp_addon.errors").SceneError, match="at least 1 pixel"):
-        ops_bake.bake_inputs(bpy.context, settings)
+        bake_steps.bake_inputs(bpy.context, settings)
 
 
 def test_unwritable_output_folder_is_refused_before_any_work(cornell, tmp_path):
@@ -237,13 +237,13 @@ def test_cancelled_bake_leaves_the_previous_image_untouched(cornell, lmdp_ext):
     only("Floor")
     assert bpy.ops.lmdp.bake() == {'FINISHED'}
     previous = pixels(bpy.data.images["Floor_lmdp_indirect"]).copy()
-    ops_bake = lmdp_ext.sub("operators.ops.bake")
+    bake_steps = lmdp_ext.sub("operators.bake_steps")
     jobs = lmdp_ext.sub("operators.jobs")
     settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
     settings.bake_samples = 64
     settings.seed = 3
-    inputs = ops_bake.bake_inputs(bpy.context, settings)
-    runner = jobs.JobRunner(ops_bake.compute_bake, inputs, settings, name="bake test")
+    inputs = bake_steps.bake_inputs(bpy.context, settings)
+    runner = jobs.JobRunner(bake_steps.compute_bake, inputs, settings, name="bake test")
     runner.cancel()  # Esc before the first work unit ends
     runner.start()
     assert runner.wait(60)

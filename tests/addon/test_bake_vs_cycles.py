@@ -2,7 +2,7 @@
 
 Reference: ``bake_cycles(type='DIFFUSE', pass_filter={'INDIRECT'})`` with adaptive sampling off,
 indirect clamping off (``sample_clamp_indirect = 0``: Cycles' default of 10 clips bright paths and
-biases the reference, by -0.1 % on the Cornell floor and about -2 % on the narrow opening) and the same path length on both sides (``max_bounces`` = 8 for Cycles'
+biases the reference low) and the same path length on both sides (``max_bounces`` = 8 for Cycles'
 total and diffuse bounces and for the engine; Cycles' own defaults are 12 total / 4 diffuse).
 Each reference is two bakes with seeds 1 and 2, cached in ``out/test_cache/cycles`` (ignored by
 git, removed by ``make clean``) under a key of everything that changes it: scene fingerprint,
@@ -154,7 +154,6 @@ def test_converges_to_cycles_at_high_samples(fresh_scene, lmdp_ext, demo, name, 
         rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
         sq = ((ours - cyc) ** 2 - var_c).mean(axis=1)
         errors.append((samples, sq.mean(), sq.std() / np.sqrt(len(sq)), rel))
-    _, last_rel_sigma = rel, rel_sigma
     assert np.all(np.abs(errors[-1][3]) < 0.01), f"mean bias {errors[-1][3]} at 4096 samples"
     for (n1, m1, s1, _), (n2, m2, s2, _) in zip(errors, errors[1:]):
         ratio = m1 / m2  # squared error: 4 for a 4x sample increase
@@ -187,9 +186,9 @@ def test_guided_has_lower_variance_than_unguided_through_a_narrow_opening(fresh_
 
 @pytest.mark.slow
 def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
-    """FINAL_GATHER is biased by the discretisation of z. Measured here and quoted in the README
-    ("Baking"): the relative mean bias (luminance) against Cycles on the floor lies in the quoted
-    range at the default 2048 points and at 8192."""
+    """FINAL_GATHER is biased by the discretisation of z: the relative mean bias (luminance)
+    against Cycles on the floor lies in :data:`FINAL_GATHER_BIAS_RANGE` at the default 2048
+    points and at 8192."""
     build("CORNELL_BOX", lmdp_ext)
     refs = reference(lmdp_ext, demo, "Floor", 32, 8192)
     biases = []
@@ -206,16 +205,7 @@ def test_final_gather_bias_on_the_cornell_floor(fresh_scene, lmdp_ext, demo):
     assert all(low < b < high for b in biases), biases
 
 
-#: The range quoted in README.md ("Baking"). Measured here -0.2 % / -0.4 % at 2048 / 8192
-#: points. The bias is the discretisation's own and its sign depends on where the points fall:
-#: ``bench/bias_map.py CORNELL_BOX Floor --modes FINAL_GATHER --resolution 128 --samples 64``
-#: with seeds 0, 1, 2, 100, 101 gives -0.7 / +0.4 / +0.5 / +0.3 / -0.3 % at 2048 points (standard
-#: deviation 0.5 %), -1.1 .. 0.0 % at 8192 and -0.6 .. -0.2 % at 32768 points (before hits closer
-#: than half a state spacing were path traced: -0.6 / +0.3 / +0.7 / +0.3 / -0.1 %, -1.1 .. 0.0 %,
-#: -0.3 .. -0.1 %). The bound is four of those standard deviations. Before ``baking.direct_after_one_bounce`` (the same command at
-#: commit 929bd6f) the same seeds gave -1.8 .. +5.0 % at 2048 points (the lamp's gap: the ceiling
-#: states at its edge see its back at point-blank range, and the rays landing beside the lamp
-#: read their z), and before back-face hits stopped gathering this test measured +4.0 % / +4.2 %
-#: (a texel under a box starts its paths inside the box and read the light of the states
-#: outside it).
+#: Relative bias bound of FINAL_GATHER on the Cornell floor: four standard deviations of the
+#: bias's spread over seeds (the bias is the discretisation's own and its sign depends on where
+#: the points fall; ``bench/bias_map.py CORNELL_BOX Floor --modes FINAL_GATHER`` maps it).
 FINAL_GATHER_BIAS_RANGE = (-0.02, 0.02)

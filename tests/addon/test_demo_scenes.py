@@ -1,4 +1,4 @@
-"""Demo scenes in Blender (operators/demo_scenes.py, operators/ops_scenes.py) and the Cycles
+"""Demo scenes in Blender (operators/adapters/demo_scenes.py, operators/ops/scenes.py) and the Cycles
 conventions they rely on, measured with real Cycles bakes (docs/cycles_conventions.md).
 
 Monte Carlo tolerances: every Cycles comparison bakes twice with different seeds; the RMS

@@ -62,7 +62,7 @@ def state_values(lmdp_ext, name):
     (luminance), spacing."""
     s = session(lmdp_ext)
     states, solution = s.require("states"), s.require("solution")
-    own = states.point_object == s.require("scene_arrays").object_names.index(name)
+    own = states.point_object == s.require("scene").object_names.index(name)
     targets = s.require("dynamics").locator.targets      # None when nothing is buried
     if targets is not None:
         own &= targets
@@ -105,7 +105,7 @@ def test_physical_mode_writes_z_rgb_luminance_and_colours(solved, lmdp_ext):
         expected = colormap.colormap_linear(record.scale.position(z), "VIRIDIS")
         assert np.allclose(color, expected, atol=2e-3)
         # The values are the engine's interpolation of the states of this object only.
-        index = s.require("scene_arrays").object_names.index(name)
+        index = s.require("scene").object_names.index(name)
         points = np.array([obj.matrix_world @ v.co for v in mesh.vertices])
         normals = np.array([(obj.matrix_world.to_3x3().inverted().transposed() @ v.normal).normalized()
                             for v in mesh.vertices])
@@ -156,7 +156,7 @@ def test_subdivided_display_is_faithful_on_the_cornell_floor(solved, lmdp_ext):
     states = s.require("states")
     targets = s.require("dynamics").locator.targets
     assert targets is not None                       # the floor under the boxes is buried
-    buried = (states.point_object == s.require("scene_arrays").object_names.index("Floor")) & ~targets
+    buried = (states.point_object == s.require("scene").object_names.index("Floor")) & ~targets
     under = cKDTree(states.points[buried])
 
     def agreement(positions, shown, radius):
@@ -302,7 +302,7 @@ def test_display_survives_save_and_reload(solved, lmdp_ext, tmp_path):
 # -- presets -----------------------------------------------------------------------------------------
 
 def test_viewport_preset(solved, lmdp_ext):
-    ops = lmdp_ext.sub("operators.ops.display")
+    ops = lmdp_ext.sub("operators.adapters.viewport")
     from types import SimpleNamespace
     shading = SimpleNamespace(type='MATERIAL', color_type='MATERIAL', light='STUDIO')
     ops.apply_shading_preset(shading)
@@ -364,7 +364,7 @@ def test_render_override_shows_the_colours_and_restores_the_users(solved, lmdp_e
 def test_show_policy_active_object_and_most_informative(solved, lmdp_ext):
     s = session(lmdp_ext)
     states = s.require("states")
-    names = s.require("scene_arrays").object_names
+    names = s.require("scene").object_names
     floor = bpy.data.objects["Floor"]
     select(list(bpy.context.selected_objects), active=floor)
     solved.lmdp.policy_max_points = 25
@@ -436,12 +436,12 @@ def test_overlay_is_registered(lmdp_ext):
 # -- the demo's pictures ---------------------------------------------------------------------------------
 
 def test_picture_render_settings(fresh_scene):
-    import lmdp_headless
-    lmdp_headless.configure_render(fresh_scene, 16)
+    import lmdp_pictures
+    lmdp_pictures.configure_render(fresh_scene, 16)
     assert fresh_scene.render.engine == 'CYCLES' and fresh_scene.view_settings.view_transform == 'Standard'
-    assert fresh_scene.render.resolution_x == fresh_scene.render.resolution_y == lmdp_headless.PICTURE_SIZE
+    assert fresh_scene.render.resolution_x == fresh_scene.render.resolution_y == lmdp_pictures.PICTURE_SIZE
     assert not fresh_scene.cycles.use_denoising            # emission-only colour renders need none
-    lmdp_headless.configure_render(fresh_scene, 32)
+    lmdp_pictures.configure_render(fresh_scene, 32)
     assert fresh_scene.cycles.use_denoising or fresh_scene.cycles.samples == 64
     assert fresh_scene.render.image_settings.file_format == 'PNG'
 
@@ -477,7 +477,7 @@ def test_sampling_again_on_the_subdivided_display_keeps_it(solved, lmdp_ext):
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     corners_before = len(evaluated(floor, "lmdp_z")[0])
     assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
-    arrays = session(lmdp_ext).require("scene_arrays")
+    arrays = session(lmdp_ext).require("scene")
     assert np.count_nonzero(arrays.triangle_object == arrays.object_names.index("Floor")) > 2  # subdivided
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     assert [m.name for m in floor.modifiers] == ["LMDP Display"]

@@ -1,4 +1,4 @@
-"""Scene extraction (operators/extract.py): Blender scene -> SceneArrays, checked against the
+"""Scene extraction (operators/adapters/extract.py): Blender scene -> SceneArrays, checked against the
 built-in scene definitions, hand-computed values and Cycles' own bakes.
 
 Monte Carlo tolerance of the Cycles comparisons: two bakes with different seeds give the RMS

@@ -67,7 +67,7 @@ def area_operator(lmdp_ext):
         def apply(self, context, result):
             for name, area in result.items():
                 context.scene[f"lmdp_test_area_{name}"] = area
-            session.session_for(context.scene).store("scene_arrays", result, seconds=self.compute_seconds)
+            session.session_for(context.scene).store("scene", result, seconds=self.compute_seconds)
             return f"Measured {len(result)} meshes"
 
     bpy.utils.register_class(LMDP_OT_test_surface_area)
@@ -85,8 +85,8 @@ def test_execute_runs_prepare_compute_apply(lit_scene, area_operator, lmdp_ext, 
     scene = bpy.context.scene
     assert written_areas(scene) == pytest.approx({"lmdp_test_area_Floor": 4.0, "lmdp_test_area_Box": 1.5})
     session = lmdp_ext.sub("operators.session").peek(scene)
-    assert session.get("scene_arrays") == pytest.approx({"Floor": 4.0, "Box": 1.5})
-    assert session.timings["scene_arrays"] >= 0.0
+    assert session.get("scene") == pytest.approx({"Floor": 4.0, "Box": 1.5})
+    assert session.timings["scene"] >= 0.0
     assert session.last_message == "Measured 2 meshes"
     err = capfd.readouterr().err
     assert "[LMDP] area:   0.0% started" in err and "[LMDP] area: 100.0% done in" in err

@@ -18,9 +18,8 @@ def test_refinement_converges_towards_cycles(lmdp_ext, fresh_scene):
     state against Cycles' DIFFUSE bake with DIRECT + INDIRECT + COLOR at the texel containing the
     state. The LMDP's discretisation error (piecewise-constant radiance of the states a ray
     lands in, noisy transitions) must be small and shrink as points are added: the mean bias
-    stays within 3 % (measured 1.3 % at 1000 points and 1.2 % at 16000, since hidden states no
-    longer leak light: ``locator.buried_points``) and the per-point error falls. Cycles' own
-    noise is measured from two seeds."""
+    stays within 3 % (buried states get no light: ``locator.buried_points``) and the per-point
+    error falls. Cycles' own noise is estimated from two seeds."""
     import bpy
     demo = lmdp_ext.sub("operators.adapters.demo_scenes")
     session = lmdp_ext.sub("operators.session")
@@ -41,7 +40,7 @@ def test_refinement_converges_towards_cycles(lmdp_ext, fresh_scene):
         s.point_count = points
         assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
         sess = session.session_for(fresh_scene)
-        arrays, states, sol = sess.require("scene_arrays"), sess.require("states"), sess.require("solution")
+        arrays, states, sol = sess.require("scene"), sess.require("states"), sess.require("solution")
         tex = floor_texels(lmdp_ext, arrays, R)
         ids = np.flatnonzero(states.point_object == arrays.object_names.index("Floor"))
         _, nearest = cKDTree(tex.position).query(states.points[ids])
@@ -54,8 +53,8 @@ def test_refinement_converges_towards_cycles(lmdp_ext, fresh_scene):
     assert noise < 0.1 * bias[1] + 1e-3
     assert max(bias) < 0.03, bias
     # The per-point error less Cycles' own per-texel noise (the mean of two seeds: half the
-    # squared difference of the seeds, halved again) is the LMDP's, and it falls (measured 0.24
-    # -> 0.19: most of it is each point's own Monte Carlo noise, 64 rays per point at any count).
+    # squared difference of the seeds, halved again) is the LMDP's, and it falls, slowly: most
+    # of it is each point's own Monte Carlo noise, 64 rays per point at any count.
     texel_noise2 = np.mean((refs[0] - refs[1]) ** 2) / 4 / cycles.mean() ** 2
     own = np.sqrt(np.maximum(np.square(rmse) - texel_noise2, 0.0))
     assert own[1] < own[0], (rmse, np.sqrt(texel_noise2))

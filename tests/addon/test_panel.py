@@ -1,44 +1,49 @@
-"""Panel sections are greyed out until the session holds their inputs (drawing itself needs a GPU
-window, which headless Blender does not have; the readiness rules are what the draw code uses)."""
+"""The panel's buttons are greyed out by their operators' poll until the session holds their
+inputs (drawing itself needs a GPU window, which headless Blender does not have; the poll
+functions are what Blender greys the buttons with)."""
 import bpy
 
 from helpers import select
 
 
+def can_run(idname):
+    """What Blender asks before it enables a button: the operator's poll in this context."""
+    category, name = idname.split(".")
+    return getattr(getattr(bpy.ops, category), name).poll()
+
+
 def test_sections_become_ready_as_the_session_fills(lit_scene, lmdp_ext):
-    panel = lmdp_ext.sub("operators.ui.panel")
     store = lmdp_ext.sub("operators.session")
     context = bpy.context
     select([])
-    assert not panel.LMDP_PT_sample.ready(context)
+    assert not can_run("lmdp.sample_states")
     select([lit_scene["Floor"]])
-    assert panel.LMDP_PT_sample.ready(context)
-    assert not panel.LMDP_PT_build.ready(context)
-    assert not panel.LMDP_PT_solve.ready(context)
-    assert not panel.LMDP_PT_show.ready(context)
+    assert can_run("lmdp.sample_states")
+    assert not can_run("lmdp.build_dynamics")
+    assert not can_run("lmdp.solve")
+    assert not can_run("lmdp.show_desirability")
 
     session = store.session_for(context.scene)
-    session.store("scene_arrays", object())
+    session.store("scene", object())
     session.store("states", object())
-    assert panel.LMDP_PT_build.ready(context) and not panel.LMDP_PT_solve.ready(context)
+    assert can_run("lmdp.build_dynamics") and not can_run("lmdp.solve")
     session.store("dynamics", object())
-    assert panel.LMDP_PT_solve.ready(context) and not panel.LMDP_PT_show.ready(context)
+    assert can_run("lmdp.solve") and not can_run("lmdp.show_desirability")
     context.scene.lmdp.bake_mode = 'GUIDED'
-    assert not panel.LMDP_PT_bake.ready(context)
+    assert not can_run("lmdp.bake")
     session.store("solution", object())
-    assert panel.LMDP_PT_show.ready(context) and panel.LMDP_PT_bake.ready(context)
+    assert can_run("lmdp.show_desirability") and can_run("lmdp.bake")
 
     session.store("states", object())  # re-sampling invalidates the dynamics and the solution
-    assert not panel.LMDP_PT_solve.ready(context) and not panel.LMDP_PT_show.ready(context)
+    assert not can_run("lmdp.solve") and not can_run("lmdp.show_desirability")
 
 
 def test_unguided_bake_needs_only_a_mesh_selection(lit_scene, lmdp_ext):
-    panel = lmdp_ext.sub("operators.ui.panel")
     bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
     select([lit_scene["Camera"]])
-    assert not panel.LMDP_PT_bake.ready(bpy.context)
+    assert not can_run("lmdp.bake")
     select([lit_scene["Box"]])
-    assert panel.LMDP_PT_bake.ready(bpy.context)
+    assert can_run("lmdp.bake")
 
 
 def test_operator_availability_follows_registration(lmdp_ext):
@@ -114,7 +119,7 @@ def draw_all(panel, context):
     for cls in (panel.LMDP_PT_sample, panel.LMDP_PT_build, panel.LMDP_PT_solve, panel.LMDP_PT_show,
                 panel.LMDP_PT_bake):
         layout = Recorder()
-        cls.draw_section(None, context, layout, context.scene.lmdp, cls.ready(context))
+        cls.draw_section(None, context, layout, context.scene.lmdp)
         layouts[cls.bl_label] = layout
     return layouts
 

@@ -15,8 +15,8 @@ class FakeStates:
 
 def test_downstream_follows_the_pipeline(lmdp_ext):
     session = lmdp_ext.sub("operators.session")
-    assert session.downstream("scene_arrays") == list(session.STAGES)
-    assert session.downstream("states") == ["states", "dynamics", "costs", "solution", "policy",
+    assert session.downstream("scene") == list(session.STAGES)
+    assert session.downstream("states") == ["states", "dynamics", "lmdp", "solution", "policy",
                                             "display", "bake"]
     assert session.downstream("solution") == ["solution", "policy", "display", "bake"]
     assert session.downstream("bake") == ["bake"]
@@ -26,13 +26,13 @@ def test_downstream_follows_the_pipeline(lmdp_ext):
 
 def test_storing_a_stage_invalidates_what_was_computed_from_it(fresh_scene, lmdp_ext):
     session = lmdp_ext.sub("operators.session").session_for(fresh_scene)
-    for stage in ("scene_arrays", "states", "dynamics", "solution", "bake"):
+    for stage in ("scene", "states", "dynamics", "solution", "bake"):
         session.store(stage, object(), seconds=1.0)
     session.store("states", FakeStates(10), seconds=0.5)
-    assert session.has("scene_arrays") and session.has("states")
+    assert session.has("scene") and session.has("states")
     assert not session.has("dynamics") and not session.has("solution") and not session.has("bake")
-    assert set(session.timings) == {"scene_arrays", "states"}
-    assert session.invalidate_from("scene_arrays") == ["scene_arrays", "states"]
+    assert set(session.timings) == {"scene", "states"}
+    assert session.invalidate_from("scene") == ["scene", "states"]
     assert session.results == {}
 
 
