@@ -108,12 +108,6 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
     return BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings)
 
 
-def check_bake_inputs(scene, names, settings, lmdp=None, will_solve=False):
-    """The warnings of :func:`check_bake` (``operators/ops/bake.py`` calls this name until it
-    takes the plan; then this goes)."""
-    return check_bake(scene, names, settings, lmdp, will_solve).warnings
-
-
 def _check_settings(settings, names):
     """The bake settings' errors; returns the resolution R."""
     mode = settings.bake_mode

@@ -33,18 +33,16 @@ import numpy as np
 
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
-from .checks import check_bake, check_bake_inputs, object_index, object_texels, scene_fingerprint
+from .checks import check_bake, object_index, object_texels
 from .gather import build_gather
 from .guide import build_guide
 from .results import IMAGE_SUFFIX, BakeResult, ObjectBake
 from .texels import TexelSet, dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
 
-# The operators read BakeResult, ObjectBake and IMAGE_SUFFIX here; operators/ops/bake.py and
-# tests/addon/test_bake_vs_cycles.py still read check_bake_inputs and scene_fingerprint here.
+# The operators read BakeResult, ObjectBake and IMAGE_SUFFIX here.
 __all__ = ["bake", "bake_object", "make_tracer", "work_units", "batch_count", "PATHS_PER_UNIT",
-           "BAKE_THREADS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX", "check_bake",
-           "check_bake_inputs", "object_texels", "scene_fingerprint"]
+           "BAKE_THREADS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
 
 #: Most paths traced by one work unit (memory: ~0.5 KiB per path in flight, so ~64 MiB per
 #: unit). Larger units amortise the per-bounce Python overhead of the wavefront loop.

@@ -49,12 +49,12 @@ def build(kind, lmdp_ext):
 def reference(lmdp_ext, demo, name, resolution, samples, seeds=(1, 2)):
     """Cycles' DIFFUSE/INDIRECT bakes of ``name`` with ``seeds``, cached; (len(seeds), R, R, 3)."""
     extract = lmdp_ext.sub("operators.adapters.extract")
-    baking = lmdp_ext.sub("lmdp_addon.bake.driver")
+    checks = lmdp_ext.sub("lmdp_addon.bake.checks")
     scene = bpy.context.scene
     arrays = extract.extract_scene(bpy.context, [bpy.data.objects[name]])
     out = []
     for seed in seeds:
-        key = "|".join(map(str, (baking.scene_fingerprint(arrays), name, resolution, samples, seed,
+        key = "|".join(map(str, (checks.scene_fingerprint(arrays), name, resolution, samples, seed,
                                  BOUNCES, scene.cycles.sample_clamp_indirect, bpy.app.version_string)))
         path = os.path.join(CACHE, hashlib.sha1(key.encode()).hexdigest()[:20] + ".npy")
         if os.path.exists(path):
