@@ -157,6 +157,73 @@ def fit_time(points, target):
     return float(np.exp(2.0 * (c - np.log(target))))
 
 
+def cycles_rows(demo, obj, ts, ref, var_ref, args):
+    """One row per Cycles sample count: (method, samples, time, 0, rel RMSE, bias, None)."""
+    import bpy
+    rows = []
+    for spp in [int(x) for x in args.cycles.split(",") if x]:
+        times, errs, biases = [], [], []
+        for r in range(args.repeats):
+            t = time.perf_counter()
+            px = demo.bake_cycles(bpy.context, obj, 'DIFFUSE', ('INDIRECT',), args.resolution, samples=spp,
+                                  margin=0, max_bounces=args.bounces, seed=100 + r)[..., :3]
+            times.append(time.perf_counter() - t)
+            e, b = score(px[ts.row, ts.col], ts, ref, var_ref)
+            errs.append(e)
+            biases.append(b)
+        rows.append(("Cycles", spp, float(np.median(times)), 0.0, float(np.sqrt(np.mean(np.square(errs)))),
+                     float(np.mean(biases)), None))
+    return rows
+
+
+def engine_rows(arrays, receiver, ref, var_ref, args, baking, pipeline, Settings):
+    """The engine's rows per mode and sample count (precompute included), and the (time, error)
+    curve of each mode."""
+    overrides = settings_overrides(args.settings)
+    rows, curves = [], {}
+    for mode in [m.strip().upper() for m in args.modes.split(",") if m.strip()]:
+        ladder = args.gather if mode == "FINAL_GATHER" else args.lmdp
+        for spp in [int(x) for x in ladder.split(",") if x]:
+            times, pre, errs, biases, rates = [], [], [], [], []
+            for r in range(args.repeats):
+                s = Settings(bake_mode=mode, bake_resolution=args.resolution, bake_samples=spp, bake_margin=0,
+                             max_bounces=args.bounces, seed=100 + r, **(overrides if mode != "UNGUIDED" else {}))
+                t = time.perf_counter()
+                lm = pipeline.run_all(arrays, s) if mode != "UNGUIDED" else None
+                tp = time.perf_counter() - t
+                result = baking.bake(arrays, [receiver], s, lmdp=lm)
+                total = time.perf_counter() - t
+                ob = result.objects[0]
+                e, b = score(ob.value, ob.texels, ref, var_ref)
+                times.append(total)
+                pre.append(tp)
+                errs.append(e)
+                biases.append(b)
+                rates.append(ob.stats.total_rays / max(ob.seconds, 1e-9))
+            row = (mode, spp, float(np.median(times)), float(np.median(pre)),
+                   float(np.sqrt(np.mean(np.square(errs)))), float(np.mean(biases)), float(np.median(rates)))
+            rows.append(row)
+            curves.setdefault(mode, []).append((row[2], row[4]))
+    return rows, curves
+
+
+def print_tables(rows, cyc, curves, embree):
+    """The speed-against-error table and each mode's time to reach Cycles' error."""
+    print(f"{'method':<14}{'samples':>8}{'time s':>9}{'precomp s':>11}{'rel RMSE':>10}{'bias':>9}{'Mrays/s':>9}")
+    for m, spp, t, tp, e, b, rate in rows:
+        print(f"{m:<14}{spp:>8}{t:>9.2f}{tp:>11.2f}{e:>10.4f}{100 * b:>8.2f}%"
+              + (f"{rate / 1e6:>9.2f}" if rate else f"{'':>9}"))
+    print(f"\nraw embreex on this scene: {embree / 1e6:.2f} Mrays/s (closest hit, one thread)")
+    print("\ntime to reach Cycles' error, as a ratio to Cycles' time (< 1: faster than Cycles):")
+    header = "".join(f"{'@' + str(r[1]) + ' spp':>12}" for r in cyc)
+    print(f"{'method':<14}{header}")
+    for mode, pts in curves.items():
+        if mode == "Cycles":
+            continue
+        ratios = [fit_time(pts, r[4]) / r[2] for r in cyc]
+        print(f"{mode:<14}" + "".join(f"{x:>12.2f}" for x in ratios))
+
+
 def main(argv=None):
     args = parse(sys.argv[1:] if argv is None else argv)
     module = start_blender()
@@ -189,64 +256,10 @@ def main(argv=None):
     print(f"reference: Cycles {args.ref_samples} samples ({ref_seconds:.1f} s), mean "
           f"{ref[ts.row, ts.col].mean(axis=0) @ LUM:.5f} (luminance)\n")
 
-    rows = []
-    cyc = []
-    for spp in [int(x) for x in args.cycles.split(",") if x]:
-        times, errs, biases = [], [], []
-        for r in range(args.repeats):
-            t = time.perf_counter()
-            px = demo.bake_cycles(bpy.context, obj, 'DIFFUSE', ('INDIRECT',), args.resolution, samples=spp,
-                                  margin=0, max_bounces=args.bounces, seed=100 + r)[..., :3]
-            times.append(time.perf_counter() - t)
-            e, b = score(px[ts.row, ts.col], ts, ref, var_ref)
-            errs.append(e)
-            biases.append(b)
-        row = ("Cycles", spp, float(np.median(times)), 0.0, float(np.sqrt(np.mean(np.square(errs)))),
-               float(np.mean(biases)), None)
-        rows.append(row)
-        cyc.append(row)
-
-    overrides = settings_overrides(args.settings)
-    embree = raw_embree_rate(arrays)
-    curves = {}
-    for mode in [m.strip().upper() for m in args.modes.split(",") if m.strip()]:
-        ladder = args.gather if mode == "FINAL_GATHER" else args.lmdp
-        for spp in [int(x) for x in ladder.split(",") if x]:
-            times, pre, errs, biases, rates = [], [], [], [], []
-            for r in range(args.repeats):
-                s = Settings(bake_mode=mode, bake_resolution=args.resolution, bake_samples=spp, bake_margin=0,
-                             max_bounces=args.bounces, seed=100 + r, **(overrides if mode != "UNGUIDED" else {}))
-                t = time.perf_counter()
-                lm = pipeline.run_all(arrays, s) if mode != "UNGUIDED" else None
-                tp = time.perf_counter() - t
-                result = baking.bake(arrays, [receiver], s, lmdp=lm)
-                total = time.perf_counter() - t
-                ob = result.objects[0]
-                e, b = score(ob.value, ob.texels, ref, var_ref)
-                times.append(total)
-                pre.append(tp)
-                errs.append(e)
-                biases.append(b)
-                rates.append(ob.stats.total_rays / max(ob.seconds, 1e-9))
-            row = (mode, spp, float(np.median(times)), float(np.median(pre)),
-                   float(np.sqrt(np.mean(np.square(errs)))), float(np.mean(biases)), float(np.median(rates)))
-            rows.append(row)
-            curves.setdefault(mode, []).append((row[2], row[4]))
+    cyc = cycles_rows(demo, obj, ts, ref, var_ref, args)
+    rows, curves = engine_rows(arrays, receiver, ref, var_ref, args, baking, pipeline, Settings)
     curves["Cycles"] = [(r[2], r[4]) for r in cyc]
-
-    print(f"{'method':<14}{'samples':>8}{'time s':>9}{'precomp s':>11}{'rel RMSE':>10}{'bias':>9}{'Mrays/s':>9}")
-    for m, spp, t, tp, e, b, rate in rows:
-        print(f"{m:<14}{spp:>8}{t:>9.2f}{tp:>11.2f}{e:>10.4f}{100 * b:>8.2f}%"
-              + (f"{rate / 1e6:>9.2f}" if rate else f"{'':>9}"))
-    print(f"\nraw embreex on this scene: {embree / 1e6:.2f} Mrays/s (closest hit, one thread)")
-    print("\ntime to reach Cycles' error, as a ratio to Cycles' time (< 1: faster than Cycles):")
-    header = "".join(f"{'@' + str(r[1]) + ' spp':>12}" for r in cyc)
-    print(f"{'method':<14}{header}")
-    for mode, pts in curves.items():
-        if mode == "Cycles":
-            continue
-        ratios = [fit_time(pts, r[4]) / r[2] for r in cyc]
-        print(f"{mode:<14}" + "".join(f"{x:>12.2f}" for x in ratios))
+    print_tables(cyc + rows, cyc, curves, raw_embree_rate(arrays))
     return 0
 
 
