@@ -9,20 +9,15 @@ With the PyPI bpy module (``make venv``)::
     .venv/bin/python scripts/lmdp_headless.py scene.blend --output DIR [options]
     .venv/bin/python scripts/lmdp_headless.py --demo cornell --output DIR   # built-in scene
 
-Options: ``--objects A,B`` (meshes that carry the states; default: every visible mesh that is not
-an emitter), ``--set key=value`` (any ``scene.lmdp`` setting, repeatable), ``--dry-run`` (load,
-select and configure, write ``summary.json``, run nothing), ``--bake`` / ``--no-bake`` (bake the
-lightmaps; by default when every mesh has a UV map), ``--pictures`` / ``--no-pictures``
-(render the solution with the scene camera; on by default with ``--demo``).
-
 It loads the extension (an installed ``bl_ext.*.lmdp_light_transport`` if there is one, otherwise
-this checkout through a temporary extension repository), selects the meshes, runs
-``bpy.ops.lmdp.run_pipeline()`` (sample, build, solve, show, bake), exports ``lmdp.npz``
-(``lmdp.export_npz``), and writes into ``--output``: ``summary.json`` (objects, settings, steps
-with timings, errors) and ``<name>_lmdp.blend`` (a copy of the scene with the results). Bakes go
-to ``--output`` too (``scene.lmdp.output_dir``); the pictures are described in
-``scripts/lmdp_pictures.py``.
-Exit status: 0 on success, 1 when a step fails (its message is printed), 2 for bad arguments.
+this checkout through a temporary extension repository), checks every argument before any work,
+selects the meshes, runs ``bpy.ops.lmdp.run_pipeline()`` (sample, build, solve, show, bake),
+exports ``lmdp.npz`` (``lmdp.export_npz``), and writes into ``--output``: ``summary.json``
+(objects, settings, steps with timings, ``"error"``, ``"exit_status"``) and ``<name>_lmdp.blend``
+(a copy of the scene with the results; the input file is never written). Bakes go to
+``--output`` too (``scene.lmdp.output_dir``); the pictures are described in
+``scripts/lmdp_pictures.py``, the checks of the arguments in ``scripts/lmdp_headless_checks.py``.
+``--help`` lists the options, the default selection and the exit statuses (:data:`EXIT_STATUS`).
 """
 import argparse
 import json
@@ -31,6 +26,7 @@ import shutil
 import sys
 import tempfile
 import time
+import traceback
 from functools import partial
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -39,17 +35,41 @@ sys.path.insert(0, HERE)
 
 import lmdp_extension  # noqa: E402  (needs HERE on sys.path, also under `blender --python`)
 import lmdp_pictures  # noqa: E402
+from lmdp_headless_checks import (  # noqa: E402
+    StepError, UsageError, apply_settings, carrier_objects, check_blend_file, check_output, select_only,
+    setting_items, submodule)
 
 DEMO_KINDS = {"cornell": "CORNELL_BOX", "narrow_opening": "NARROW_OPENING", "plane_under_sky": "PLANE_UNDER_SKY",
               "parallel_squares": "PARALLEL_SQUARES", "heavy": "HEAVY"}
 
+DESCRIPTION = """\
+Run the LMDP pipeline (sample, build, solve, show, bake) on a .blend file, or on a built-in
+scene (--demo), and write the results into --output.
 
-class UsageError(Exception):
-    """Bad command line (exit status 2)."""
+Without --objects the states go on every visible mesh that can carry them: meshes without
+faces and meshes that emit light on every face are left out, and so, when the run bakes, are
+meshes without a UV map (they still occlude and reflect light); the script names each mesh it
+leaves out. --objects is only needed to choose other meshes."""
+
+EXIT_STATUS = """\
+exit status:
+  0    success: the results are in --output
+  1    the pipeline failed (e.g. a scene with no light, a setting an LMDP operator refuses, a
+       render or the save failed) or an internal error; summary.json's "error" says what happened
+  2    bad arguments: a missing, unreadable or corrupt .blend file, an unusable --output,
+       --objects naming what cannot carry states, --set with an unknown key or a bad value,
+       --demo with an unknown kind, conflicting options; nothing was computed, and when --output
+       is usable summary.json's "error" names the argument
+  130  interrupted (Ctrl+C)
+Every error is one line on stderr, "lmdp_headless.py: error: ...", that names the argument or
+the step and what to do."""
 
 
-class StepError(Exception):
-    """A step failed (exit status 1)."""
+class HeadlessParser(argparse.ArgumentParser):
+    """argparse whose errors raise :class:`UsageError` (one line, summary.json) instead of exiting."""
+
+    def error(self, message):
+        raise UsageError(f"{message} (see --help)")
 
 
 def script_arguments(argv):
@@ -60,17 +80,18 @@ def script_arguments(argv):
 
 
 def build_parser():
-    parser = argparse.ArgumentParser(
-        prog="lmdp_headless.py",
-        description="Run the LMDP pipeline (sample, build, solve, show, bake) on a .blend file.")
+    parser = HeadlessParser(prog="lmdp_headless.py", description=DESCRIPTION, epilog=EXIT_STATUS,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("blend", nargs="?", help="the .blend file (omit inside `blender scene.blend "
-                        "--python ...`, where Blender has loaded it already)")
+                        "--python ...`, where Blender has loaded it already); it is never written")
     parser.add_argument("--output", required=True, help="folder for summary.json, lmdp.npz, bakes "
                         "and the result .blend (created if missing)")
-    parser.add_argument("--objects", default="", help="comma-separated names of the meshes that carry "
-                        "the states (default: every visible mesh that is not an emitter)")
+    parser.add_argument("--objects", default=None, help="comma-separated names of the meshes that "
+                        "carry the states (default: see above); a name that contains commas is "
+                        "matched whole")
     parser.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
-                        help="set scene.lmdp.KEY (repeatable), e.g. --set point_count=4096")
+                        help="set scene.lmdp.KEY (repeatable), e.g. --set point_count=4096; values "
+                        "are checked against the setting's type and range")
     parser.add_argument("--demo", choices=sorted(DEMO_KINDS), help="build a built-in scene instead of "
                         "loading a file")
     parser.add_argument("--dry-run", action="store_true", help="load, select and configure, write "
@@ -79,21 +100,36 @@ def build_parser():
                         help="render z, the policy arrows and a probe with the scene camera into "
                         "--output (default: on with --demo, off for a .blend file)")
     parser.add_argument("--bake", action=argparse.BooleanOptionalAction, default=None,
-                        help="bake the indirect light of the meshes into --output (default: on when "
-                        "every mesh that carries states has a UV map; --bake insists and fails otherwise)")
+                        help="bake the indirect light of the meshes into --output (default: when "
+                        "the meshes that carry states have UV maps; --bake refuses meshes named in "
+                        "--objects that have none)")
     return parser
 
 
-def parse_arguments(argv):
-    args = build_parser().parse_args(script_arguments(argv))
+# -- the arguments ------------------------------------------------------------------------------
+def check_arguments(args):
+    """Every check that needs no Blender data: the .blend file, --set's form, conflicts."""
     if args.blend and args.demo:
         raise UsageError("give either a .blend file or --demo, not both")
-    if args.blend and not os.path.isfile(args.blend):
-        raise UsageError(f"no such .blend file: {args.blend}")
-    for item in args.settings:
-        if "=" not in item:
-            raise UsageError(f"--set expects KEY=VALUE, got {item!r}")
-    return args
+    if args.blend:
+        check_blend_file(args.blend)
+    if args.objects is not None and not any(n.strip() for n in args.objects.split(",")):
+        raise UsageError(f"--objects {args.objects!r} names no object: give comma-separated "
+                         "object names, e.g. --objects Floor,Wall (or leave --objects out)")
+    if args.dry_run and (args.bake or args.pictures):
+        flag = "--bake" if args.bake else "--pictures"
+        raise UsageError(f"--dry-run runs nothing, so {flag} would do nothing: drop one of them")
+    setting_items(args.settings)
+
+
+def usable_output(argv):
+    """--output of a command line that failed to parse, when it names a usable folder (else None)."""
+    parser = HeadlessParser(add_help=False)
+    parser.add_argument("--output")
+    try:
+        return check_output(parser.parse_known_args(argv)[0].output)
+    except UsageError:
+        return None
 
 
 # -- the extension --------------------------------------------------------------------------------
@@ -120,9 +156,10 @@ def remove_repo_directory(repo_dir):
     shutil.rmtree(repo_dir, ignore_errors=True)
 
 
-def submodule(extension, name):
-    import importlib
-    return importlib.import_module(f"{extension}.{name}")
+def operator_message(error):
+    """The text of a ``bpy.ops`` RuntimeError on one line, without Blender's "Error: " prefix."""
+    text = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+    return text[len("Error: "):] if text.startswith("Error: ") else text
 
 
 # -- scene ----------------------------------------------------------------------------------------
@@ -132,100 +169,65 @@ def build_demo(kind, common):
     try:
         common.call_operator("lmdp.add_demo_scene", kind=DEMO_KINDS[kind])
     except RuntimeError as error:
-        raise StepError(f"lmdp.add_demo_scene failed: {error}") from error
+        raise StepError(f"lmdp.add_demo_scene failed: {operator_message(error)}") from error
 
 
-def _rgb_positive(socket):
-    value = socket.default_value
-    try:
-        return any(float(c) > 0.0 for c in tuple(value)[:3])
-    except TypeError:
-        return float(value) > 0.0
+def open_scene(args, common, preloaded):
+    """Build the demo or open the .blend file; returns (summary's "blend", the results' name).
 
-
-def is_emitter(obj):
-    """True when a material of ``obj`` emits light (Emission shader or Principled emission)."""
-    for slot in obj.material_slots:
-        material = slot.material
-        if material is None or not material.node_tree:
-            continue
-        for node in material.node_tree.nodes:
-            if node.type == 'EMISSION':
-                strength, color = node.inputs.get("Strength"), node.inputs.get("Color")
-            elif node.type == 'BSDF_PRINCIPLED':
-                strength, color = node.inputs.get("Emission Strength"), node.inputs.get("Emission Color")
-            else:
-                continue
-            if strength is None or color is None:
-                continue
-            lit_strength = strength.is_linked or float(strength.default_value) > 0.0
-            lit_color = color.is_linked or _rgb_positive(color)
-            if lit_strength and lit_color:
-                return True
-    return False
-
-
-def choose_objects(names_arg):
-    """The mesh objects that carry the states (see --objects)."""
+    ``preloaded``: the file Blender had loaded before the script ran (``blender scene.blend
+    --python ...``); naming another one, or --demo, as well is a conflict."""
     import bpy
-    view_layer = bpy.context.view_layer
-    if names_arg:
-        chosen = []
-        for name in (n.strip() for n in names_arg.split(",") if n.strip()):
-            obj = bpy.data.objects.get(name)
-            if obj is None:
-                raise UsageError(f"--objects: no object named {name!r} in the scene")
-            if obj.type != 'MESH':
-                raise UsageError(f"--objects: {name!r} is a {obj.type.lower()}, not a mesh")
-            if obj.name not in view_layer.objects or not obj.visible_get():
-                raise UsageError(f"--objects: {name!r} is hidden or not in the view layer: unhide it")
-            chosen.append(obj)
-        return chosen
-    return [obj for obj in view_layer.objects
-            if obj.type == 'MESH' and obj.visible_get() and not is_emitter(obj)]
-
-
-def select_only(objects):
-    import bpy
-    view_layer = bpy.context.view_layer
-    for obj in view_layer.objects:
-        obj.select_set(False)
-    for obj in objects:
-        obj.select_set(True)
-    view_layer.objects.active = objects[0] if objects else None
-
-
-def apply_settings(scene, items):
-    """Set ``scene.lmdp`` from ``KEY=VALUE`` strings, converting by the property's type."""
-    props = scene.lmdp
-    rna = props.bl_rna.properties
-    for item in items:
-        key, _, text = item.partition("=")
-        key = key.strip()
-        if key not in rna or key in ("rna_type", "name", "session_id"):
-            known = ", ".join(sorted(p.identifier for p in rna if p.identifier not in ("rna_type", "name", "session_id")))
-            raise UsageError(f"--set: unknown setting {key!r}; the settings are: {known}")
-        prop = rna[key]
+    if preloaded and (args.demo or (args.blend and not _same_file(preloaded, args.blend))):
+        other = f"--demo {args.demo}" if args.demo else f"the arguments name {args.blend}"
+        raise UsageError(f"Blender has loaded {preloaded} and {other}: give one scene")
+    if args.demo:
+        build_demo(args.demo, common)
+        return f"demo:{args.demo}", args.demo
+    if args.blend:
         try:
-            if prop.type == 'INT':
-                value = int(text)
-            elif prop.type == 'FLOAT':
-                value = float(text)
-            elif prop.type == 'BOOLEAN':
-                value = text.strip().lower() in ("1", "true", "yes", "on")
-            elif prop.type == 'ENUM':
-                value = text.strip().upper()
-                allowed = [e.identifier for e in prop.enum_items]
-                if value not in allowed:
-                    raise ValueError(f"expected one of {', '.join(allowed)}")
-            else:
-                value = text
-            setattr(props, key, value)
-        except (ValueError, TypeError) as error:
-            raise UsageError(f"--set {key}={text}: {error}") from error
+            bpy.ops.wm.open_mainfile(filepath=os.path.abspath(args.blend), load_ui=False)
+        except RuntimeError as error:
+            raise UsageError(f"{args.blend}: Blender cannot open it ({operator_message(error)}): give "
+                             "a complete .blend file (a truncated save or a newer Blender's file "
+                             "cannot be read)") from None
+    elif not bpy.data.filepath:
+        raise UsageError("no .blend file: pass scene.blend (or run inside `blender scene.blend "
+                         "--background --python ...`), or use --demo cornell")
+    return bpy.data.filepath, os.path.splitext(os.path.basename(bpy.data.filepath))[0]
 
 
-# -- running ----------------------------------------------------------------------------------------
+def _same_file(a, b):
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.abspath(a) == os.path.abspath(b)
+
+
+def leave_edit_mode():
+    """Switch objects saved in Edit (or another) Mode to Object Mode, so the capture sees their
+    edits; returns their names. Only the loaded copy changes, never the input file."""
+    import bpy
+    view_layer = bpy.context.view_layer
+    editing = sorted(obj.name for obj in view_layer.objects if obj.mode != 'OBJECT')
+    for name in editing:
+        obj = view_layer.objects[name]
+        if obj.mode == 'OBJECT':  # left with an earlier one (multi-object editing)
+            continue
+        view_layer.objects.active = obj
+        try:
+            bpy.ops.object.mode_set(mode='OBJECT')
+        except RuntimeError as error:
+            raise StepError(f"{name} is in {obj.mode.replace('_', ' ').title()} Mode and switching "
+                            f"to Object Mode failed ({operator_message(error)}): save the file in "
+                            "Object Mode") from None
+    if editing:
+        print(f"[LMDP] {', '.join(editing)}: switched to Object Mode, as Blender does before it "
+              "renders (the input file is not changed)", flush=True)
+    return editing
+
+
+# -- running --------------------------------------------------------------------------------------
 def run_operator(common, idname, steps, **kwargs):
     start = time.perf_counter()
     step = {"operator": idname, "arguments": {k: str(v) for k, v in kwargs.items()}}
@@ -234,16 +236,17 @@ def run_operator(common, idname, steps, **kwargs):
     try:
         result = common.call_operator(idname, **kwargs)
     except RuntimeError as error:  # bpy.ops raises with the operator's ERROR report
-        step.update(status="FAILED", seconds=time.perf_counter() - start, message=str(error))
-        raise StepError(f"{idname} failed: {error}") from error
+        message = operator_message(error)
+        step.update(status="FAILED", seconds=time.perf_counter() - start, message=message)
+        raise StepError(f"{idname} failed: {message}") from error
     step.update(status=sorted(result)[0] if result else "", seconds=time.perf_counter() - start)
     if "FINISHED" not in result:
         raise StepError(f"{idname} returned {sorted(result)}")
     return result
 
 
-def run_pipeline(common, output, steps, bake=True):
-    run_operator(common, "lmdp.run_pipeline", steps, bake=bake)
+def run_pipeline(common, output, steps, bake=True, show=True):
+    run_operator(common, "lmdp.run_pipeline", steps, bake=bake, show=show)
     run_operator(common, "lmdp.export_npz", steps, filepath=os.path.join(output, "lmdp.npz"))
 
 
@@ -258,108 +261,105 @@ def session_summary(extension, scene):
     }
 
 
-def open_scene(args, common):
-    """Build the demo or open the .blend file; returns (summary's "blend", the results' name)."""
-    import bpy
-    if args.demo:
-        build_demo(args.demo, common)
-        return f"demo:{args.demo}", args.demo
-    if args.blend:
-        bpy.ops.wm.open_mainfile(filepath=os.path.abspath(args.blend), load_ui=False)
-    elif not bpy.data.filepath:
-        raise UsageError("no .blend file: pass scene.blend (or run inside `blender scene.blend "
-                         "--background --python ...`), or use --demo cornell")
-    return bpy.data.filepath, os.path.splitext(os.path.basename(bpy.data.filepath))[0]
-
-
-def carrier_objects(args):
-    """The meshes that carry the states: the demo's selection, or :func:`choose_objects`."""
-    import bpy
-    if args.demo and not args.objects and any(o.type == 'MESH' for o in bpy.context.selected_objects):
-        objects = [o for o in bpy.context.selected_objects if o.type == 'MESH']  # the demo's choice
-    else:
-        objects = choose_objects(args.objects)
-    if not objects:
-        raise StepError("no mesh to compute: the scene has no visible mesh that is not an emitter "
-                        "(use --objects to choose)")
-    return objects
-
-
-def wants_bake(args, objects):
-    """--bake / --no-bake, or by default: bake when every mesh has a UV map (else say why not)."""
-    if args.bake is not None:
-        return args.bake
-    no_uv = [obj.name for obj in objects if not obj.data.uv_layers]
-    if no_uv:
-        print(f"[LMDP] no bake: {', '.join(sorted(no_uv))} ha{'s' if len(no_uv) == 1 else 've'} "
-              "no UV map (add one, or pass --bake to insist)", flush=True)
-    return not no_uv
-
-
-def compute(args, common, extension, output, name, objects, summary):
+def compute(args, common, extension, output, name, summary):
     """Run All (and the pictures), then save the result .blend; fills ``summary``."""
     import bpy
+    scene = bpy.context.scene
     try:
-        summary["bake"] = wants_bake(args, objects)
-        run_pipeline(common, output, summary["steps"], bake=summary["bake"])
+        run_pipeline(common, output, summary["steps"], bake=summary["bake"], show=scene.lmdp.run_all_show)
         if args.pictures if args.pictures is not None else bool(args.demo):
-            explicit = {item.partition("=")[0].strip() for item in args.settings}
-            summary["pictures"] = lmdp_pictures.render_pictures(
-                partial(run_operator, common), extension, output, name, summary["steps"], explicit, args.demo)
+            explicit = set(setting_items(args.settings))
+            try:
+                summary["pictures"] = lmdp_pictures.render_pictures(
+                    partial(run_operator, common), extension, output, name, summary["steps"], explicit, args.demo)
+            except RuntimeError as error:  # bpy.ops.render.render
+                raise StepError(f"rendering the pictures failed: {operator_message(error)}") from error
     finally:
-        summary["session"] = session_summary(extension, bpy.context.scene)
+        summary["session"] = session_summary(extension, scene)
     result_blend = os.path.join(output, f"{name}_lmdp.blend")
-    bpy.ops.wm.save_as_mainfile(filepath=result_blend, copy=True)
+    try:
+        bpy.ops.wm.save_as_mainfile(filepath=result_blend, copy=True)
+    except RuntimeError as error:
+        raise StepError(f"saving {result_blend} failed: {operator_message(error)}") from error
     summary["result_blend"] = result_blend
 
 
 def run(args, output, summary, cleanup):
     """Everything after the arguments: load, configure, select, compute (unless --dry-run)."""
     import bpy
-    extension, origin = load_extension(cleanup)
+    preloaded = bpy.data.filepath
+    try:
+        extension, origin = load_extension(cleanup)
+    except Exception as error:  # the add-on's own import or registration error
+        raise StepError(f"could not load the LMDP extension: {type(error).__name__}: {error}") from error
     summary["extension"] = {"module": extension, "origin": origin}
     common = submodule(extension, "operators.common")
-    summary["blend"], name = open_scene(args, common)
+    summary["blend"], name = open_scene(args, common, preloaded)
+    summary["mode_switched"] = leave_edit_mode()
     scene = bpy.context.scene
+    if args.pictures and scene.camera is None:
+        raise UsageError(f"--pictures: scene '{scene.name}' has no active camera (the pictures are "
+                         "taken with it): set one (Scene Properties > Camera), or drop --pictures")
     scene.lmdp.output_dir = output
     apply_settings(scene, args.settings)
-    objects = carrier_objects(args)
+    objects, summary["bake"], summary["left_out"] = carrier_objects(args, extension)
     select_only(objects)
     summary["objects"] = sorted(obj.name for obj in objects)
     summary["settings"] = submodule(extension, "operators.properties").settings_from_scene(scene).as_dict()
     print(f"[LMDP] {len(objects)} meshes carry the states: {', '.join(summary['objects'])}", flush=True)
     if not args.dry_run:
-        compute(args, common, extension, output, name, objects, summary)
+        compute(args, common, extension, output, name, summary)
+
+
+def write_summary(output, summary):
+    """``summary.json`` into ``output``; False (and a line on stderr) if it cannot be written."""
+    try:
+        with open(os.path.join(output, "summary.json"), "w", encoding="utf-8") as fh:
+            json.dump(summary, fh, indent=2, default=str)
+        return True
+    except OSError as error:
+        print(f"lmdp_headless.py: error: cannot write {output}/summary.json ({error.strerror})", file=sys.stderr)
+        return False
 
 
 def main(argv=None):
-    argv = list(sys.argv if argv is None else argv)
-    try:
-        args = parse_arguments(argv)
-    except UsageError as error:
-        print(f"lmdp_headless.py: error: {error}", file=sys.stderr)
-        return 2
-    output = os.path.abspath(args.output)
-    os.makedirs(output, exist_ok=True)
+    """The script: returns its exit status (:data:`EXIT_STATUS`)."""
+    argv = script_arguments(list(sys.argv if argv is None else argv))
     summary = {"blend": None, "extension": None, "objects": [], "settings": {}, "steps": [],
-               "dry_run": bool(args.dry_run), "error": None}
-    cleanup = []
-    status = 0
+               "dry_run": "--dry-run" in argv, "error": None, "exit_status": None}
+    output, cleanup, status, message = None, [], 0, None
     try:
+        args = build_parser().parse_args(argv)
+        output = check_output(args.output)
+        check_arguments(args)
         run(args, output, summary, cleanup)
-    except (UsageError, StepError) as error:
-        summary["error"] = str(error)
-        print(f"lmdp_headless.py: error: {error}", file=sys.stderr)
-        status = 2 if isinstance(error, UsageError) else 1
+    except UsageError as error:
+        status, message = 2, str(error)
+    except StepError as error:
+        status, message = 1, str(error)
+    except KeyboardInterrupt:
+        status, message = 130, "interrupted (Ctrl+C): the results in --output are incomplete"
+    except Exception as error:  # a bug: keep its traceback in the summary
+        status, message = 1, f"internal error: {type(error).__name__}: {error}"
+        summary["traceback"] = traceback.format_exc()
     finally:
-        with open(os.path.join(output, "summary.json"), "w", encoding="utf-8") as fh:
-            json.dump(summary, fh, indent=2, default=str)
         for action in reversed(cleanup):
             try:
                 action()
             except Exception as error:  # cleanup must not hide the result
                 print(f"lmdp_headless.py: warning: cleanup failed: {error}", file=sys.stderr)
-    if status == 0:
+    summary.update(error=message, exit_status=status)
+    if output is None and status == 2:
+        output = usable_output(argv)
+    written = output is not None and write_summary(output, summary)
+    if message:
+        where = f" (traceback in {output}/summary.json; please report it)" if "traceback" in summary and written else ""
+        print(f"lmdp_headless.py: error: {message}{where}", file=sys.stderr)
+        if "traceback" in summary and not written:
+            print(summary["traceback"], file=sys.stderr)
+    elif not written:
+        status = 1
+    else:
         print(f"[LMDP] results in {output}", flush=True)
     return status
 

@@ -97,19 +97,29 @@ def test_full_run_on_a_saved_file(repo_root, tmp_path, scene_file, lmdp_ext):
     assert json.loads((output / "bake_stats.json").read_text())["settings"]["bake_resolution"] == 16
 
 
-def test_meshes_without_uv_map_skip_the_bake_unless_asked(repo_root, tmp_path, lit_scene):
-    box = lit_scene["Box"]
-    remove_uv_maps(box)
+def test_meshes_without_uv_map_are_left_out_of_the_bake_or_skip_it_when_named(repo_root, tmp_path, lit_scene):
+    """By default a mesh without UV map is left out (and named), the others are baked; named in
+    --objects it skips the bake, and --bake refuses it before any work."""
+    remove_uv_maps(lit_scene["Box"])
     path = tmp_path / "no_uv.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)
+    small = ["--set", "point_count=64", "--set", "bake_resolution=16", "--set", "bake_samples=4"]
     output = tmp_path / "out"
-    run = run_script(repo_root, tmp_path, str(path), "--output", str(output), "--set", "point_count=64")
+    run = run_script(repo_root, tmp_path, str(path), "--output", str(output), *small)
+    assert run.returncode == 0, run.stderr
+    assert "left out Box: it has no UV map, so it cannot be baked" in run.stdout
+    summary = read_summary(output)
+    assert summary["objects"] == ["Floor"] and summary["bake"] is True
+    assert (output / "Floor_lmdp_indirect.exr").is_file() and not (output / "Box_lmdp_indirect.exr").exists()
+    named = tmp_path / "named"
+    run = run_script(repo_root, tmp_path, str(path), "--output", str(named), "--objects", "Box,Floor", *small)
     assert run.returncode == 0, run.stderr
     assert "no bake: Box has no UV map" in run.stdout
-    assert read_summary(output)["bake"] is False and not (output / "bake_stats.json").exists()
+    assert read_summary(named)["bake"] is False and not (named / "bake_stats.json").exists()
     run = run_script(repo_root, tmp_path, str(path), "--output", str(tmp_path / "insist"),
-                     "--set", "point_count=64", "--bake")
-    assert run.returncode == 1 and "No UV map on Box" in run.stderr
+                     "--objects", "Box,Floor", "--bake", *small)
+    assert run.returncode == 2 and "--bake: Box has no UV map" in run.stderr
+    assert read_summary(tmp_path / "insist")["steps"] == []
 
 
 def test_demo(repo_root, tmp_path, lmdp_ext):
