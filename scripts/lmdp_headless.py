@@ -295,6 +295,9 @@ def run(args, output, summary, cleanup):
     summary["extension"] = {"module": extension, "origin": origin}
     common = submodule(extension, "operators.common")
     summary["blend"], name = open_scene(args, common, preloaded)
+    if os.path.isdir(os.path.join(output, f"{name}_lmdp.blend")):
+        raise UsageError(f"--output {output}: {name}_lmdp.blend in it is a folder, and the script "
+                         "saves the result .blend there: remove it or give another folder")
     summary["mode_switched"] = leave_edit_mode()
     scene = bpy.context.scene
     if args.pictures and scene.camera is None:
@@ -306,7 +309,8 @@ def run(args, output, summary, cleanup):
     select_only(objects)
     summary["objects"] = sorted(obj.name for obj in objects)
     summary["settings"] = submodule(extension, "operators.properties").settings_from_scene(scene).as_dict()
-    print(f"[LMDP] {len(objects)} meshes carry the states: {', '.join(summary['objects'])}", flush=True)
+    carry = "mesh carries" if len(objects) == 1 else "meshes carry"
+    print(f"[LMDP] {len(objects)} {carry} the states: {', '.join(summary['objects'])}", flush=True)
     if not args.dry_run:
         compute(args, common, extension, output, name, summary)
 

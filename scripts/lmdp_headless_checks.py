@@ -206,10 +206,18 @@ def mesh_facts(extension, meshes):
 
 
 def _split_names(text):
+    """--objects as names: split at commas, but commas inside an object's name stay (the longest
+    run of comma-separated parts that names an object is taken whole)."""
     import bpy
-    if bpy.data.objects.get(text) is not None:  # a name that contains commas
-        return [text]
-    return list(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    parts, names, i = text.split(","), [], 0
+    while i < len(parts):
+        whole = next((j for j in range(len(parts), i + 1, -1)
+                      if bpy.data.objects.get(",".join(parts[i:j]).strip()) is not None), i + 1)
+        name = ",".join(parts[i:whole]).strip()
+        if name and name not in names:
+            names.append(name)
+        i = whole
+    return names
 
 
 def named_objects(extension, text):

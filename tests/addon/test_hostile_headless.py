@@ -132,6 +132,14 @@ def test_a_bad_blend_file_is_refused_with_its_name(call, lit_file, tmp_path, kin
     assert outcome.summary["error"] == message and outcome.summary["exit_status"] == 2
 
 
+def test_a_compressed_blend_file_is_read(call, lit_scene, tmp_path):
+    path = str(tmp_path / "compressed.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path, copy=True, compress=True)
+    outcome = call(path, "--dry-run")
+    assert outcome.status == 0, outcome.err
+    assert outcome.summary["objects"] == ["Box", "Floor"]
+
+
 def test_an_unreadable_blend_file_is_refused(call, checks, lit_file, monkeypatch):
     def no_permission(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
@@ -160,6 +168,10 @@ def test_an_unusable_output_is_refused_without_a_traceback(call, checks, lit_fil
 
     (tmp_path / "taken" / "summary.json").mkdir(parents=True)
     call(lit_file, "--dry-run", output="taken").refused(2, "summary.json in it is a folder")
+    (tmp_path / "result" / "lit_lmdp.blend").mkdir(parents=True)
+    outcome = call(lit_file, *FAST, output="result")
+    outcome.refused(2, "lit_lmdp.blend in it is a folder")
+    assert outcome.summary["steps"] == []  # refused before the work, not after it
 
     def read_only(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
@@ -189,6 +201,15 @@ def test_objects_that_cannot_carry_states_are_refused(call, mixed_file, objects,
     outcome = call(mixed_file, "--objects", objects, "--dry-run")
     message = outcome.refused(2, *words)
     assert outcome.summary["error"] == message
+
+
+def test_objects_whose_names_contain_commas_can_be_named(call, lit_scene, tmp_path):
+    lit_scene["Box"].name = "Wall, North"
+    path = save(tmp_path / "comma.blend")
+    for text in ("Wall, North", "Floor,Wall, North", " Wall, North ,Floor,Floor"):
+        outcome = call(path, "--objects", text, "--dry-run")
+        assert outcome.status == 0, outcome.err
+        assert outcome.summary["objects"] == (["Wall, North"] if text == "Wall, North" else ["Floor", "Wall, North"])
 
 
 def test_bake_refuses_named_meshes_without_uv_map_before_any_work(call, mixed_file):
