@@ -61,8 +61,8 @@ exit status:
        --demo with an unknown kind, conflicting options; nothing was computed, and when --output
        is usable summary.json's "error" names the argument
   130  interrupted (Ctrl+C)
-Every error is one line on stderr, "lmdp_headless.py: error: ...", that names the argument or
-the step and what to do."""
+An error ends the run with one line on stderr, "lmdp_headless.py: error: ...", that names the
+argument or the step and what to do (for bad arguments it is the only line)."""
 
 
 class HeadlessParser(argparse.ArgumentParser):
@@ -76,6 +76,9 @@ def script_arguments(argv):
     """The script's own arguments: after ``--`` when present (Blender's convention), else argv[1:]."""
     if "--" in argv:
         return argv[argv.index("--") + 1:]
+    if "--python" in argv or "-P" in argv:  # run by the blender binary without Blender's `--`
+        raise UsageError("inside Blender, put the script's arguments after `--`: blender scene.blend "
+                         "--background --python scripts/lmdp_headless.py -- --output DIR")
     return argv[1:]
 
 
@@ -100,9 +103,11 @@ def build_parser():
                         help="render z, the policy arrows and a probe with the scene camera into "
                         "--output (default: on with --demo, off for a .blend file)")
     parser.add_argument("--bake", action=argparse.BooleanOptionalAction, default=None,
-                        help="bake the indirect light of the meshes into --output (default: when "
-                        "the meshes that carry states have UV maps; --bake refuses meshes named in "
-                        "--objects that have none)")
+                        help="bake the indirect light of the meshes that carry the states into "
+                        "--output (default: on; a mesh without UV map is left out of the default "
+                        "selection, and one named in --objects turns the bake off, which the script "
+                        "says; --bake refuses it instead; --no-bake also puts states on meshes "
+                        "without UV map)")
     return parser
 
 
@@ -274,6 +279,8 @@ def compute(args, common, extension, output, name, summary):
                     partial(run_operator, common), extension, output, name, summary["steps"], explicit, args.demo)
             except RuntimeError as error:  # bpy.ops.render.render
                 raise StepError(f"rendering the pictures failed: {operator_message(error)}") from error
+            except submodule(extension, "lmdp_addon.errors").LMDPError as error:  # e.g. a material hook-up
+                raise StepError(f"the pictures failed: {error}") from error
     finally:
         summary["session"] = session_summary(extension, scene)
     result_blend = os.path.join(output, f"{name}_lmdp.blend")
@@ -328,11 +335,12 @@ def write_summary(output, summary):
 
 def main(argv=None):
     """The script: returns its exit status (:data:`EXIT_STATUS`)."""
-    argv = script_arguments(list(sys.argv if argv is None else argv))
+    argv = list(sys.argv if argv is None else argv)
     summary = {"blend": None, "extension": None, "objects": [], "settings": {}, "steps": [],
                "dry_run": "--dry-run" in argv, "error": None, "exit_status": None}
     output, cleanup, status, message = None, [], 0, None
     try:
+        argv = script_arguments(argv)
         args = build_parser().parse_args(argv)
         output = check_output(args.output)
         check_arguments(args)

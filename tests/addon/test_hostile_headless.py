@@ -183,6 +183,13 @@ def test_a_missing_output_is_one_line(call, lit_file):
     call(lit_file, output=None).refused(2, "the following arguments are required: --output", "--help")
 
 
+def test_blender_form_without_double_dash_says_where_the_arguments_go(call, lit_file):
+    # sys.argv of `blender lit.blend --background --python scripts/lmdp_headless.py --output DIR`
+    outcome = call(lit_file, "--background", "--python", "scripts/lmdp_headless.py")
+    outcome.refused(2, "put the script's arguments after `--`")
+    assert outcome.summary["error"].startswith("inside Blender")
+
+
 # -- --objects -------------------------------------------------------------------------------------
 @pytest.mark.parametrize("objects, words", [
     (",,,", ["--objects ',,,' names no object"]),
