@@ -1,0 +1,216 @@
+"""Issue 22, files, images, materials and linked data: what a hostile-but-realistic user does to
+the bake's outputs and the export, and what must come out of it (a clear refusal, nothing of the
+user's lost or half-written).
+
+Classes: 3 (file names from object names), 4 (lightmaps lost on save), 5 (a user's own file in the
+output folder).
+"""
+import json
+import os
+
+import bpy
+import numpy as np
+import pytest
+
+from helpers import add_material, select
+
+SUFFIX = "_lmdp_indirect"
+
+
+@pytest.fixture
+def scene(lit_scene):
+    """lit_scene with a bake that takes a fraction of a second (8 px, 4 samples, unguided)."""
+    s = bpy.context.scene.lmdp
+    s.bake_resolution = 8
+    s.bake_samples = 4
+    s.bake_margin = 1
+    s.bake_mode = 'UNGUIDED'
+    s.point_count = 64
+    s.rays_per_stratum = 1
+    s.light_samples = 2
+    return lit_scene
+
+
+def pixels(image):
+    out = np.empty(image.size[0] * image.size[1] * 4, np.float32)
+    image.pixels.foreach_get(out)
+    return out
+
+
+def ours(key):
+    """The add-on's images for the object ``key`` (its ``name_full``)."""
+    return [im for im in bpy.data.images if im.get("lmdp_bake_object") == key]
+
+
+def own_image(obj):
+    found = ours(obj.name_full)
+    assert len(found) == 1, (obj.name_full, [im.name for im in bpy.data.images])
+    return found[0]
+
+
+def files_under(folder):
+    return sorted(os.path.relpath(os.path.join(d, f), folder) for d, _, fs in os.walk(folder) for f in fs)
+
+
+def folder_bytes(folder):
+    return {f: open(os.path.join(folder, f), "rb").read() for f in files_under(folder)}
+
+
+def bake(**kwargs):
+    return bpy.ops.lmdp.bake(**kwargs)
+
+
+def add_plane(name, location=(0.0, 0.0, 0.0), size=0.3):
+    bpy.ops.mesh.primitive_plane_add(size=size, location=location)
+    obj = bpy.context.object
+    obj.name = name
+    obj.data.materials.append(add_material(f"{name[:40]} material"))
+    return obj
+
+
+def lmdp_nodes():
+    """{material: names of the LMDP nodes in it} for every material but the preview ones."""
+    return {m.name: sorted(n.name for n in m.node_tree.nodes if n.name.startswith("LMDP"))
+            for m in bpy.data.materials
+            if m.node_tree is not None and "lmdp_preview_material" not in m}
+
+
+# -- class 3: file names come from object names ------------------------------------------------------
+
+def test_object_names_give_safe_unique_files_inside_the_output_folder(scene, tmp_path, lmdp_ext):
+    """'/', '..', a name that another one becomes once made safe, a 250-character name, a long
+    non-ASCII one, characters Windows refuses, two names that differ only in case: each object
+    gets its own file, inside output_dir, with a name every file system takes."""
+    out = tmp_path / "bakes"
+    bpy.context.scene.lmdp.output_dir = str(out)
+    scene["Floor"].name = "Wall/North"
+    scene["Box"].name = "../escaped"
+    others = [add_plane("Wall_North", (0.6, 0.6, 0.01)), add_plane("L" * 250, (-0.6, 0.6, 0.01)),
+              add_plane("Ünïcødé " * 20, (0.6, -0.6, 0.01)), add_plane("..", (-0.6, -0.6, 0.01)),
+              add_plane('Tab\there: "quoted" <1|2>?*', (0.0, 0.7, 0.01)), add_plane("wall_NORTH", (0.0, -0.7, 0.01))]
+    objects = [scene["Floor"], scene["Box"], *others]
+    select(objects)
+    assert bake() == {'FINISHED'}
+    assert files_under(tmp_path) == [os.path.join("bakes", f) for f in files_under(out)]
+    exr = [f for f in files_under(out) if f.endswith(".exr")]
+    assert len(exr) == len(objects) and sorted(exr + ["bake_stats.json"]) == files_under(out)
+    assert all(len(f.encode()) <= 255 and not f.startswith(".") for f in exr)
+    assert len({f.lower() for f in exr}) == len(exr)
+    stats = json.loads((out / "bake_stats.json").read_text())
+    for obj in objects:
+        image = own_image(obj)
+        path = bpy.path.abspath(image.filepath_raw)
+        assert os.path.dirname(path) == str(out) and os.path.basename(path) in exr
+        assert stats["objects"][obj.name]["file"] == os.path.basename(path)
+        baked = lmdp_ext.sub("operators.session").session_for(bpy.context.scene).require("bake")
+        np.testing.assert_array_equal(pixels(image), baked.object(obj.name).image.reshape(-1))
+    assert len({bpy.path.abspath(own_image(o).filepath_raw) for o in objects}) == len(objects)
+    assert not [im.name for im in bpy.data.images if im.name.startswith("LMDP scratch")]
+    # A re-bake writes the same files again (nothing new next to them).
+    before = files_under(out)
+    bpy.context.scene.lmdp.seed = 5
+    assert bake() == {'FINISHED'}
+    assert files_under(out) == before
+
+
+def test_a_failure_half_way_through_the_swap_changes_nothing(scene, tmp_path, monkeypatch):
+    """The second file cannot be moved into place: the first one is put back, no temporary file
+    or scratch image is left, the images keep their pixels, the statistics their content."""
+    out = tmp_path / "bakes"
+    bpy.context.scene.lmdp.output_dir = str(out)
+    select([scene["Floor"], scene["Box"]])
+    assert bake() == {'FINISHED'}
+    files = folder_bytes(out)
+    images = {name: pixels(own_image(scene[name])) for name in ("Floor", "Box")}
+    names = sorted(im.name for im in bpy.data.images)
+    real_replace = os.replace
+    failed = []
+
+    def replace(src, dst, *args, **kwargs):
+        if os.path.basename(dst) == f"Floor{SUFFIX}.exr" and not failed:
+            failed.append(dst)
+            raise OSError(28, "No space left on device")
+        return real_replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", replace)
+    bpy.context.scene.lmdp.seed = 9
+    with pytest.raises(RuntimeError, match="nothing was changed"):
+        bake()
+    monkeypatch.undo()
+    assert failed
+    assert folder_bytes(out) == files
+    assert sorted(im.name for im in bpy.data.images) == names
+    for name, before in images.items():
+        np.testing.assert_array_equal(pixels(own_image(scene[name])), before)
+
+
+# -- class 4: lightmaps lost on save ------------------------------------------------------------------
+
+@pytest.mark.parametrize("folder", [False, True], ids=["packed", "output_dir"])
+@pytest.mark.parametrize("hook_up", ["NONE", "MULTIPLY", "PREVIEW"])
+def test_lightmaps_survive_save_and_reload(scene, tmp_path, hook_up, folder):
+    if folder:
+        bpy.context.scene.lmdp.output_dir = str(tmp_path / "bakes")
+    select([scene["Floor"]])
+    assert bake(hook_up=hook_up) == {'FINISHED'}
+    baked = pixels(own_image(scene["Floor"]))
+    path = tmp_path / "baked.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    floor = bpy.data.objects["Floor"]
+    image = own_image(floor)
+    assert image.name == f"Floor{SUFFIX}" and image.colorspace_settings.name == 'Non-Color'
+    np.testing.assert_array_equal(pixels(image), baked)
+    if hook_up == "MULTIPLY":
+        assert floor.data.materials[0].node_tree.nodes["LMDP Lightmap"].image == image
+    if hook_up == "PREVIEW":
+        assert floor.material_slots[0].material.node_tree.nodes["LMDP Lightmap"].image == image
+    # The hook-up can still be removed after the reload, and the lightmap stays.
+    select([floor])
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert lmdp_nodes() == {m.name: [] for m in bpy.data.materials
+                            if m.node_tree is not None and "lmdp_preview_material" not in m}
+    assert floor.material_slots[0].link == 'DATA'
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    np.testing.assert_array_equal(pixels(own_image(bpy.data.objects["Floor"])), baked)
+
+
+# -- class 5: a user's own file in output_dir ---------------------------------------------------------
+
+def test_a_file_lmdp_did_not_write_is_never_overwritten(scene, tmp_path):
+    """The user's image of the lightmap's name, and its file in output_dir: both are left alone,
+    the lightmap goes to a file of its own (named in a warning), and re-bakes reuse that file."""
+    out = tmp_path / "bakes"
+    out.mkdir()
+    user_file = out / f"Floor{SUFFIX}.exr"
+    user_file.write_bytes(b"the user's own bake")
+    user_image = bpy.data.images.load(str(user_file), check_existing=False)
+    user_image.name = f"Floor{SUFFIX}"
+    bpy.context.scene.lmdp.output_dir = str(out)
+    select([scene["Floor"]])
+    assert bake() == {'FINISHED'}
+    assert user_file.read_bytes() == b"the user's own bake"
+    assert user_image.filepath_raw == str(user_file) and "lmdp_bake_object" not in user_image
+    image = own_image(scene["Floor"])
+    ours_file = bpy.path.abspath(image.filepath_raw)
+    assert os.path.dirname(ours_file) == str(out) and ours_file != str(user_file)
+    assert os.path.exists(ours_file)
+    files = files_under(out)
+    bpy.context.scene.lmdp.seed = 4
+    assert bake() == {'FINISHED'}
+    assert files_under(out) == files and user_file.read_bytes() == b"the user's own bake"
+    assert bpy.path.abspath(own_image(scene["Floor"]).filepath_raw) == ours_file
+
+
+def test_a_statistics_file_lmdp_did_not_write_is_refused_before_any_work(scene, tmp_path):
+    out = tmp_path / "bakes"
+    out.mkdir()
+    (out / "bake_stats.json").write_text("my notes")
+    bpy.context.scene.lmdp.output_dir = str(out)
+    select([scene["Floor"]])
+    images = sorted(im.name for im in bpy.data.images)
+    with pytest.raises(RuntimeError, match="bake_stats.json.*not written by LMDP"):
+        bake()
+    assert files_under(out) == ["bake_stats.json"] and (out / "bake_stats.json").read_text() == "my notes"
+    assert sorted(im.name for im in bpy.data.images) == images
