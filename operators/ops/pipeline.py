@@ -173,7 +173,7 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
         scene, names = capture_scene(context)
         pipeline.check_build(scene, self.settings)
         # Every bake check runs now, before any work (a mesh without UV map is reported here).
-        bake = planned_bake_inputs(scene, names, self.settings) if self.bake else None
+        bake = planned_bake_inputs(context, scene, names, self.settings, self.hook_up) if self.bake else None
         return scene, names, bake
 
     def compute(self, inputs, settings, progress):

@@ -3,7 +3,7 @@ the bake's outputs and the export, and what must come out of it (a clear refusal
 user's lost or half-written).
 
 Classes: 3 (file names from object names), 4 (lightmaps lost on save), 5 (a user's own file in the
-output folder).
+output folder), 6 (hook-up removal after MULTIPLY then PREVIEW), 7 (linked library data).
 """
 import json
 import os
@@ -214,3 +214,197 @@ def test_a_statistics_file_lmdp_did_not_write_is_refused_before_any_work(scene, 
         bake()
     assert files_under(out) == ["bake_stats.json"] and (out / "bake_stats.json").read_text() == "my notes"
     assert sorted(im.name for im in bpy.data.images) == images
+
+
+# -- class 6: hook-up removal after MULTIPLY then PREVIEW ---------------------------------------------
+
+def slot_state(obj):
+    return [(s.link, s.material.name if s.material else None) for s in obj.material_slots]
+
+
+def test_remove_hookup_after_multiply_then_preview_restores_everything(scene):
+    """Also the object-level material the user keeps behind a slot linked to the mesh's data."""
+    floor = scene["Floor"]
+    hidden = add_material("Object-level, hidden")
+    floor.material_slots[0].link = 'OBJECT'
+    floor.material_slots[0].material = hidden
+    floor.material_slots[0].link = 'DATA'
+    material = floor.data.materials[0]
+    bsdf = next(n for n in material.node_tree.nodes if n.type == 'BSDF_DIFFUSE')
+    colour = tuple(bsdf.inputs["Color"].default_value)
+    slots = slot_state(floor)
+    nodes = lmdp_nodes()
+    select([floor])
+    assert bake(hook_up='MULTIPLY') == {'FINISHED'}
+    assert bake(hook_up='PREVIEW') == {'FINISHED'}
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert lmdp_nodes() == nodes and slot_state(floor) == slots
+    assert not bsdf.inputs["Color"].links and tuple(bsdf.inputs["Color"].default_value) == pytest.approx(colour)
+    floor.material_slots[0].link = 'OBJECT'
+    assert floor.material_slots[0].material == hidden
+
+
+def test_hook_ups_whose_nodes_the_user_deleted_are_remade_and_removed(scene):
+    """The user deleted the lightmap's image node (MULTIPLY, PREVIEW) or the Mix node (MULTIPLY):
+    a re-bake makes the hook-up whole again, and its removal leaves no node behind."""
+    floor = scene["Floor"]
+    nodes = floor.data.materials[0].node_tree.nodes
+    select([floor])
+    assert bake(hook_up='MULTIPLY') == {'FINISHED'}
+    nodes.remove(nodes["LMDP Lightmap"])
+    assert bake(hook_up='MULTIPLY') == {'FINISHED'}
+    assert nodes["LMDP Lightmap"].image == own_image(floor)
+    b = [s for s in nodes["LMDP Lightmap Multiply"].inputs if s.type == 'RGBA'][1]
+    assert b.links[0].from_node == nodes["LMDP Lightmap"]
+    nodes.remove(nodes["LMDP Lightmap Multiply"])
+    assert bake(hook_up='MULTIPLY') == {'FINISHED'}
+    assert sorted(n.name for n in nodes if n.name.startswith("LMDP")) == ["LMDP Lightmap", "LMDP Lightmap Multiply"]
+    assert bake(hook_up='PREVIEW') == {'FINISHED'}
+    preview = floor.material_slots[0].material.node_tree.nodes
+    preview.remove(preview["LMDP Lightmap"])
+    assert bake(hook_up='PREVIEW') == {'FINISHED'}
+    emission = next(n for n in floor.material_slots[0].material.node_tree.nodes if n.type == 'EMISSION')
+    assert emission.inputs["Color"].links[0].from_node.image == own_image(floor)
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert not any(lmdp_nodes().values()) and slot_state(floor) == [('DATA', floor.data.materials[0].name)]
+
+
+def test_multiply_after_preview_hooks_the_objects_own_materials(scene):
+    """PREVIEW hides the mesh's materials behind the object-level preview: MULTIPLY still
+    hooks the mesh's material (not the preview), and a slot added in between is restored too."""
+    floor = scene["Floor"]
+    material = floor.data.materials[0]
+    select([floor])
+    assert bake(hook_up='PREVIEW') == {'FINISHED'}
+    floor.data.materials.append(add_material("Added later"))
+    assert bake(hook_up='MULTIPLY') == {'FINISHED'}
+    assert "LMDP Lightmap Multiply" in material.node_tree.nodes
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert not any(lmdp_nodes().values())
+    assert slot_state(floor) == [('DATA', material.name), ('DATA', "Added later")]
+
+
+# -- class 7: linked library data ---------------------------------------------------------------------
+
+def add_multiply_nodes(material, image):
+    """The nodes of a MULTIPLY hook-up, made by hand (as a library file made with LMDP has them)."""
+    tree = material.node_tree
+    bsdf = next(n for n in tree.nodes if n.type == 'BSDF_DIFFUSE')
+    tex = tree.nodes.new("ShaderNodeTexImage")
+    tex.name = "LMDP Lightmap"
+    tex.image = image
+    mix = tree.nodes.new("ShaderNodeMix")
+    mix.name = "LMDP Lightmap Multiply"
+    mix.data_type = 'RGBA'
+    mix.blend_type = 'MULTIPLY'
+    a, b = [s for s in mix.inputs if s.type == 'RGBA'][:2]
+    tree.links.new(tex.outputs["Color"], b)
+    tree.links.new(next(s for s in mix.outputs if s.type == 'RGBA'), bsdf.inputs["Color"])
+
+
+@pytest.fixture
+def linked(scene, tmp_path):
+    """A library .blend holding a plane "Floor" (its material already hooked up with MULTIPLY in
+    the library), a plane "LibPanel" and a material "LibOnly material", linked into the scene
+    next to the local Floor."""
+    library = tmp_path / "library.blend"
+    local_floor = scene["Floor"]
+    local_floor.name = "Local for now"
+    made = [add_plane("Floor", (0.0, 0.0, 1.0), 0.4), add_plane("LibPanel", (0.0, 0.8, 0.5), 0.4)]
+    image = bpy.data.images.new("LibLightmap", 4, 4)
+    add_multiply_nodes(made[0].data.materials[0], image)
+    alone = add_material("LibOnly material")
+    bpy.data.libraries.write(str(library), set(made) | {alone}, fake_user=True)
+    bpy.data.materials.remove(alone)
+    for obj in made:
+        mesh, mat = obj.data, obj.data.materials[0]
+        bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(mesh)
+        bpy.data.materials.remove(mat)
+    bpy.data.images.remove(image)
+    local_floor.name = "Floor"
+    with bpy.data.libraries.load(str(library), link=True) as (_, dst):
+        dst.objects = ["Floor", "LibPanel"]
+        dst.materials = ["LibOnly material"]
+    for obj in dst.objects:
+        bpy.context.scene.collection.objects.link(obj)
+    lib = {o.name: o for o in dst.objects}
+    assert all(o.library is not None for o in lib.values()) and local_floor.library is None
+    return {**scene, "local": local_floor, "Floor": lib["Floor"], "LibPanel": lib["LibPanel"],
+            "material": dst.materials[0]}
+
+
+def library_state(linked):
+    """What the library's data looks like in this session (must never change)."""
+    return {o.name_full: (slot_state(o), sorted(o.keys()),
+                          {s.material.name_full: sorted(n.name for n in s.material.node_tree.nodes)
+                           for s in o.material_slots if s.material})
+            for o in (linked["Floor"], linked["LibPanel"])} | {
+        "material": sorted(n.name for n in linked["material"].node_tree.nodes)}
+
+
+def test_a_linked_object_never_writes_into_its_local_namesakes_lightmap(linked, tmp_path):
+    out = tmp_path / "bakes"
+    bpy.context.scene.lmdp.output_dir = str(out)
+    local, lib_floor = linked["local"], linked["Floor"]
+    lib_floor.hide_set(True)
+    select([local])
+    assert bake() == {'FINISHED'}
+    local_image = own_image(local)
+    local_pixels = pixels(local_image)
+    local_files = folder_bytes(out)
+    # Both visible: the capture cannot tell two objects named Floor apart, so it refuses.
+    lib_floor.hide_set(False)
+    select([lib_floor])
+    with pytest.raises(RuntimeError, match="Floor.*linked from.*library.blend.*rename"):
+        bake()
+    # The local one hidden: the linked Floor is baked into an image and a file of its own.
+    local.hide_set(True)
+    select([lib_floor])
+    assert bake() == {'FINISHED'}
+    assert own_image(local) == local_image and local_image["lmdp_bake_object"] == "Floor"
+    np.testing.assert_array_equal(pixels(local_image), local_pixels)
+    lib_image = own_image(lib_floor)
+    assert lib_image != local_image and lib_image.library is None
+    for name, data in local_files.items():
+        if name.endswith(".exr"):
+            assert (out / name).read_bytes() == data
+    assert bpy.path.abspath(lib_image.filepath_raw) != bpy.path.abspath(local_image.filepath_raw)
+
+
+def test_hook_ups_that_would_edit_library_data_are_refused_before_any_work(linked):
+    panel, box = linked["LibPanel"], linked["Box"]
+    state = library_state(linked)
+    images = sorted(im.name_full for im in bpy.data.images)
+    select([panel])
+    for hook_up in ('PREVIEW', 'MULTIPLY'):
+        with pytest.raises(RuntimeError, match="LibPanel.*linked from.*library.blend"):
+            bake(hook_up=hook_up)
+    # A local object whose material comes from the library: MULTIPLY would edit that material.
+    box.data.materials[0] = linked["material"]
+    box_nodes = sorted(n.name for n in box.data.materials[0].node_tree.nodes)
+    select([box])
+    with pytest.raises(RuntimeError, match="Material 'LibOnly material' of 'Box'.*linked from.*library.blend"):
+        bake(hook_up='MULTIPLY')
+    assert sorted(im.name_full for im in bpy.data.images) == images
+    # Shared with a linked object too: not hooked up (a warning says so), nothing edited.
+    box.data.materials[0] = panel.material_slots[0].material
+    assert bake(hook_up='MULTIPLY') == {'FINISHED'}
+    box.data.materials[0] = linked["material"]
+    assert sorted(n.name for n in box.data.materials[0].node_tree.nodes) == box_nodes
+    assert library_state(linked) == state
+    # PREVIEW touches only the local object's slots and a local material: allowed.
+    assert bake(hook_up='PREVIEW') == {'FINISHED'}
+    assert box.material_slots[0].material.library is None
+    assert library_state(linked) == state
+
+
+def test_remove_hookup_leaves_library_data_alone(linked):
+    """The library's own Floor carries a MULTIPLY hook-up made in the library: removing hook-ups
+    of a selection that holds it changes nothing there, and says so."""
+    state = library_state(linked)
+    linked["local"].name = "Local Floor"
+    select([linked["Floor"], linked["LibPanel"]])
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert library_state(linked) == state
+    assert "LMDP Lightmap Multiply" in linked["Floor"].material_slots[0].material.node_tree.nodes
