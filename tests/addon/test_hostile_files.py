@@ -3,7 +3,8 @@ the bake's outputs and the export, and what must come out of it (a clear refusal
 user's lost or half-written).
 
 Classes: 3 (file names from object names), 4 (lightmaps lost on save), 5 (a user's own file in the
-output folder), 6 (hook-up removal after MULTIPLY then PREVIEW), 7 (linked library data).
+output folder), 6 (hook-up removal after MULTIPLY then PREVIEW), 7 (linked library data),
+8 (export to an unwritable path), 9 (``//`` paths in an unsaved file).
 """
 import json
 import os
@@ -408,3 +409,83 @@ def test_remove_hookup_leaves_library_data_alone(linked):
     assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
     assert library_state(linked) == state
     assert "LMDP Lightmap Multiply" in linked["Floor"].material_slots[0].material.node_tree.nodes
+
+
+# -- class 8: export to an unwritable path ------------------------------------------------------------
+
+@pytest.fixture
+def solved(scene):
+    select([scene["Floor"], scene["Box"]])
+    assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
+    return scene
+
+
+@pytest.mark.parametrize("where", ["sys", "proc", "too_long", "read_only", "folder_is_a_file"])
+def test_export_to_an_unwritable_path_is_a_clear_error(solved, tmp_path, where):
+    read_only = tmp_path / "kept.npz"
+    read_only.write_bytes(b"earlier export")
+    read_only.chmod(0o444)
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    path = {"sys": "/sys/lmdp.npz", "proc": "/proc/lmdp.npz", "too_long": str(tmp_path / ("x" * 300 + ".npz")),
+            "read_only": str(read_only), "folder_is_a_file": str(blocker / "lmdp.npz")}[where]
+    with pytest.raises(RuntimeError) as error:
+        bpy.ops.lmdp.export_npz(filepath=path)
+    message = str(error.value)
+    assert "Internal error" not in message and "file path" in message.lower(), message
+    assert read_only.read_bytes() == b"earlier export" and blocker.read_text() == "not a folder"
+    assert sorted(os.listdir(tmp_path)) == ["file", "kept.npz"]
+
+
+def test_a_failed_export_keeps_the_previous_file(solved, tmp_path, monkeypatch):
+    path = tmp_path / "lmdp.npz"
+    assert bpy.ops.lmdp.export_npz(filepath=str(path)) == {'FINISHED'}
+    previous = path.read_bytes()
+
+    def full_disk(file, *args, **kwargs):
+        (file.write if hasattr(file, "write") else open(file, "wb").write)(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", full_disk)
+    with pytest.raises(RuntimeError, match="No space left on device"):
+        bpy.ops.lmdp.export_npz(filepath=str(path))
+    monkeypatch.undo()
+    assert path.read_bytes() == previous and os.listdir(tmp_path) == ["lmdp.npz"]
+
+
+# -- class 9: relative paths in an unsaved file -------------------------------------------------------
+
+@pytest.mark.parametrize("output_dir", ["//bakes/", "bakes/"])
+def test_relative_output_folder_needs_a_saved_file_or_an_absolute_path(solved, tmp_path, monkeypatch, output_dir):
+    work = tmp_path / "cwd"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    assert bpy.data.filepath == ""
+    bpy.context.scene.lmdp.output_dir = output_dir
+    select([solved["Floor"]])
+    images = sorted(im.name for im in bpy.data.images)
+    wanted = "save the .blend first or use an absolute path" if output_dir.startswith("//") else "absolute path"
+    with pytest.raises(RuntimeError, match=f"Output Folder.*{wanted}"):
+        bake()
+    with pytest.raises(RuntimeError, match=f"Output Folder.*{wanted}"):
+        bpy.ops.lmdp.export_npz()
+    with pytest.raises(RuntimeError, match="save the .blend first or use an absolute path"):
+        bpy.ops.lmdp.export_npz(filepath="//lmdp.npz")
+    assert os.listdir(work) == [] and sorted(im.name for im in bpy.data.images) == images
+    # Saved, '//bakes/' is the folder next to the .blend file.
+    if output_dir.startswith("//"):
+        bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+        assert bake() == {'FINISHED'}
+        assert bpy.ops.lmdp.export_npz() == {'FINISHED'}
+        assert sorted(os.listdir(tmp_path / "bakes")) == [f"Floor{SUFFIX}.exr", "bake_stats.json", "lmdp.npz"]
+        assert os.listdir(work) == []
+
+
+def test_a_home_relative_output_folder_is_expanded(scene, tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    bpy.context.scene.lmdp.output_dir = "~/bakes"
+    select([scene["Floor"]])
+    assert bake() == {'FINISHED'}
+    assert sorted(os.listdir(tmp_path / "bakes")) == [f"Floor{SUFFIX}.exr", "bake_stats.json"]
+    assert not (tmp_path / "~").exists()
