@@ -126,10 +126,11 @@ def owned_files(folder, stats):
     statistics (or, for statistics written before that list, each object's image name + .exr)
     and the files the add-on's images are loaded from."""
     owned = {}
-    for name, entry in (stats.get("objects") or {}).items():
+    objects, files = stats.get("objects"), stats.get("files")
+    for name, entry in (objects.items() if isinstance(objects, dict) else ()):
         if isinstance(entry, dict):
             owned[entry.get("file") or f"{entry.get('image') or name + IMAGE_SUFFIX}.exr"] = name
-    owned.update(stats.get("files") or {})
+    owned.update(files if isinstance(files, dict) else {})
     for image in _tagged_images():
         if image.source == 'FILE' and image.filepath_raw:
             path = bpy.path.abspath(image.filepath_raw)

@@ -16,6 +16,7 @@ import pytest
 from helpers import add_material, select
 
 SUFFIX = "_lmdp_indirect"
+PREVIEW_SAVED = "lmdp_preview_saved_slots"
 
 
 @pytest.fixture
@@ -217,6 +218,23 @@ def test_a_statistics_file_lmdp_did_not_write_is_refused_before_any_work(scene, 
     assert sorted(im.name for im in bpy.data.images) == images
 
 
+def test_a_hand_edited_statistics_file_cannot_point_outside_the_folder(scene, tmp_path):
+    """bake_stats.json's list of files is only trusted for plain file names in the folder."""
+    out = tmp_path / "bakes"
+    out.mkdir()
+    victim = tmp_path / "victim.exr"
+    victim.write_bytes(b"keep me")
+    stats = {"mode": "UNGUIDED", "settings": {}, "objects": [1, 2],
+             "files": {"../victim.exr": "Floor", "/etc/hosts": "Floor", "x": 5}}
+    (out / "bake_stats.json").write_text(json.dumps(stats))
+    bpy.context.scene.lmdp.output_dir = str(out)
+    select([scene["Floor"]])
+    assert bake() == {'FINISHED'}
+    assert victim.read_bytes() == b"keep me"
+    assert files_under(out) == [f"Floor{SUFFIX}.exr", "bake_stats.json"]
+    assert json.loads((out / "bake_stats.json").read_text())["files"] == {f"Floor{SUFFIX}.exr": "Floor"}
+
+
 # -- class 6: hook-up removal after MULTIPLY then PREVIEW ---------------------------------------------
 
 def slot_state(obj):
@@ -398,6 +416,21 @@ def test_hook_ups_that_would_edit_library_data_are_refused_before_any_work(linke
     assert bake(hook_up='PREVIEW') == {'FINISHED'}
     assert box.material_slots[0].material.library is None
     assert library_state(linked) == state
+
+
+def test_hook_ups_of_a_library_override_are_refused(linked):
+    """A library override is local in name only: its mesh and materials stay in the library and
+    its own edits outside the overridable properties are reset when the file is reloaded."""
+    state = library_state(linked)
+    override = linked["LibPanel"].override_create(remap_local_usages=True)
+    assert override.library is None and override.override_library is not None
+    select([override])
+    with pytest.raises(RuntimeError, match="'LibPanel' is a library override of .*library.blend"):
+        bake(hook_up='PREVIEW')
+    # Its material is the library's, still used by the linked original: not hooked up.
+    assert bake(hook_up='MULTIPLY') == {'FINISHED'}
+    assert own_image(override).library is None
+    assert library_state(linked) == state and PREVIEW_SAVED not in override
 
 
 def test_remove_hookup_leaves_library_data_alone(linked):
