@@ -2,23 +2,31 @@
 
 * :func:`bake_inputs` (main thread): capture the current scene (``extract_scene``) and run every
   check of the bake once, before any work (``lmdp_addon.bake.checks.check_bake``: UV maps,
-  overlapping UVs, resolution, light, the solution GUIDED / FINAL_GATHER need), and an output
-  folder that can be created; the resulting ``BakePlan`` carries the texels it rasterised.
-  :func:`planned_bake_inputs` does the same for Run All, which captures the scene itself and
-  solves it before baking.
+  overlapping UVs, resolution, light, the solution GUIDED / FINAL_GATHER need), objects the bake
+  could not tell apart (a linked and a local object of the same name), an output folder that can
+  be used, and a material hook-up that would not edit library data; the resulting ``BakePlan``
+  carries the texels it rasterised. :func:`planned_bake_inputs` does the same for Run All, which
+  captures the scene itself and solves it before baking.
 * :func:`compute_bake` (no bpy; a worker thread in the UI, Esc cancels between work units):
   ``lmdp_addon.bake.driver.bake`` with the plan, so nothing is checked or rasterised twice.
 * :func:`apply_bake` (main thread, after success only): the lightmaps into images and files
   (:mod:`.adapters.lightmaps`), the optional material hook-up (:mod:`.adapters.materials`) and
   the session's ``bake`` stage.
+
+Objects are identified by their key, ``name_full`` (the name, or "Floor [library.blend]" for a
+linked object), so a linked object never writes into the lightmap of a local namesake.
 """
+from collections import Counter
 from dataclasses import dataclass, field
+
+import bpy
 
 from ..lmdp_addon.bake import driver
 from ..lmdp_addon.bake.checks import check_bake
+from ..lmdp_addon.errors import SceneError
 from .adapters.extract import extract_scene
 from .adapters.lightmaps import prepare_output_folder, write_lightmaps
-from .adapters.materials import hook_up as hook_up_materials
+from .adapters.materials import check_hook_up, hook_up as hook_up_materials
 from .common import selected_meshes
 from .session import session_for
 
@@ -35,27 +43,63 @@ class BakeInputs:
     plan: object                       #: checks.BakePlan: the objects, their texels, the warnings
     lmdp: object = None                #: LMDPResult that guides GUIDED / FINAL_GATHER
     warnings: list = field(default_factory=list)
+    keys: dict = field(default_factory=dict)  #: object name -> key (``name_full``)
 
 
-def bake_inputs(context, settings):
+@dataclass
+class BakedLightmaps:
+    """What :func:`compute_bake` hands to :func:`apply_bake`."""
+
+    result: object                     #: the engine's BakeResult
+    keys: dict                         #: object name -> key (``name_full``)
+
+
+def _origin(obj):
+    return "local" if obj.library is None else f"linked from {obj.library.filepath}"
+
+
+def check_distinct_names(context, scene, meshes):
+    """Raise ``SceneError`` when a selected mesh shares its name with another captured object
+    (a linked and a local one): the bake's results are matched to objects by name."""
+    counts = Counter(scene.object_names)
+    for obj in meshes:
+        if counts[obj.name] > 1:
+            same = [o for o in context.view_layer.objects if o.name == obj.name]
+            where = ", ".join(_origin(o) for o in same) or "twice"
+            raise SceneError(f"Two objects named '{obj.name}' are in the scene ({where}): the bake "
+                             "cannot tell them apart; rename the local one, or hide one of them")
+
+
+def object_keys(meshes):
+    """{object name: key} of the meshes to bake."""
+    return {obj.name: obj.name_full for obj in meshes}
+
+
+def bake_inputs(context, settings, hook_up="NONE"):
     """Main thread: capture the scene and check the bake (raises ``LMDPError`` before any work).
 
     GUIDED and FINAL_GATHER are guided by the session's ``LMDPResult`` as it is."""
     meshes = selected_meshes(context)
     scene = extract_scene(context, meshes)
+    check_distinct_names(context, scene, meshes)
     lmdp = session_for(context.scene).result if settings.bake_mode != "UNGUIDED" else None
     plan = check_bake(scene, [obj.name for obj in meshes], settings, lmdp)
     prepare_output_folder(settings.output_dir)
-    return BakeInputs(scene=scene, plan=plan, lmdp=lmdp, warnings=list(scene.warnings) + list(plan.warnings))
+    check_hook_up(meshes, hook_up)
+    return BakeInputs(scene=scene, plan=plan, lmdp=lmdp, warnings=list(scene.warnings) + list(plan.warnings),
+                      keys=object_keys(meshes))
 
 
-def planned_bake_inputs(scene, names, settings):
-    """Main thread: the bake inputs of Run All, which has captured ``scene`` and will sample,
-    build and solve it before baking (it sets ``BakeInputs.lmdp`` to that result). Checks
-    everything the bake can check before the solution exists."""
+def planned_bake_inputs(context, scene, names, settings, hook_up="NONE"):
+    """Main thread: the bake inputs of Run All, which has captured ``scene`` (the selected meshes
+    ``names``) and will sample, build and solve it before baking (it sets ``BakeInputs.lmdp`` to
+    that result). Checks everything the bake can check before the solution exists."""
+    meshes = [obj for obj in selected_meshes(context) if obj.name in set(names)]
+    check_distinct_names(context, scene, meshes)
     plan = check_bake(scene, names, settings, will_solve=True)
     prepare_output_folder(settings.output_dir)
-    return BakeInputs(scene=scene, plan=plan, warnings=list(plan.warnings))
+    check_hook_up(meshes, hook_up)
+    return BakeInputs(scene=scene, plan=plan, warnings=list(plan.warnings), keys=object_keys(meshes))
 
 
 def compute_bake(inputs, settings, progress):
@@ -65,20 +109,35 @@ def compute_bake(inputs, settings, progress):
                          precompute_seconds=dict(lmdp.seconds) if lmdp is not None else None,
                          plan=inputs.plan)
     result.warnings = list(inputs.warnings)
-    return result
+    return BakedLightmaps(result=result, keys=dict(inputs.keys))
 
 
-def apply_bake(context, result, settings, hook_up="NONE"):
+def _objects_by_key(keys):
+    """{object name: the object whose key it is, or None if it is gone}."""
+    by_key = {obj.name_full: obj for obj in bpy.data.objects}
+    return {name: by_key.get(key) for name, key in keys.items()}
+
+
+def apply_bake(context, baked, settings, hook_up="NONE"):
     """Main thread: swap the baked lightmaps in, save files and statistics, hook up materials,
-    keep ``result`` as the session's ``bake`` stage.
+    keep the ``BakeResult`` as the session's ``bake`` stage.
 
     Returns ``(message, warnings)``. Raises ``LMDPError`` (nothing changed) if the files cannot
-    be written.
+    be written or the hook-up would edit library data (checked again: the scene may have
+    changed while the bake ran).
     """
+    result = baked.result
     warnings = list(result.warnings)
-    output_dir = settings.output_dir
-    images = write_lightmaps(result, output_dir, warnings)
-    warnings += hook_up_materials(images, hook_up)
+    output_dir = prepare_output_folder(settings.output_dir)
+    objects = _objects_by_key(baked.keys)
+    present = [obj for obj in objects.values() if obj is not None]
+    check_hook_up(present, hook_up)
+    images = write_lightmaps(result, output_dir, warnings, baked.keys)
+    gone = [name for name, obj in objects.items() if obj is None]
+    if gone and hook_up != "NONE":
+        warnings.append(f"{', '.join(gone)} no longer in the file: lightmap written, not hooked up")
+    warnings += hook_up_materials([(objects[n], im) for n, im in images.items()
+                                    if objects.get(n) is not None], hook_up)
     session_for(context.scene).store("bake", result, seconds=result.seconds.get("bake"))
     rays = sum(ob.stats.total_rays for ob in result.objects)
     bake_seconds = result.seconds.get("bake", 0.0)

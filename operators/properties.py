@@ -11,7 +11,7 @@ from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, SOLVERS, Settings
 _DEFAULTS = Settings()
 
 #: Blender 4.5+ accepts (and warns without) this flag on paths that may start with '//'.
-_BLEND_RELATIVE_PATH = {'PATH_SUPPORTS_BLEND_RELATIVE'} if bpy.app.version >= (4, 5, 0) else set()
+BLEND_RELATIVE_PATH = {'PATH_SUPPORTS_BLEND_RELATIVE'} if bpy.app.version >= (4, 5, 0) else set()
 
 COST_MODE_ITEMS = (
     ("THESIS", "Thesis",
@@ -178,7 +178,7 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         name="Output Folder",
         description="Folder where baked lightmaps (OpenEXR), statistics and exports are written; "
                     "empty: nothing is written to disk",
-        default=_DEFAULTS.output_dir, subtype='DIR_PATH', options=_BLEND_RELATIVE_PATH,
+        default=_DEFAULTS.output_dir, subtype='DIR_PATH', options=BLEND_RELATIVE_PATH,
     )
     memory_budget_gb: FloatProperty(
         name="Memory Budget",
@@ -274,7 +274,9 @@ def settings_from_scene(scene):
 
     Blender stores float properties in single precision: they are rounded to 7 significant
     digits so that a tolerance typed as 1e-8 reaches the engine as 1e-8, not 9.99999994e-09.
-    ``output_dir`` is made absolute (Blender's ``//`` prefix means "next to the .blend file").
+    ``output_dir`` is made absolute (Blender's ``//`` prefix means "next to the .blend file");
+    in a file that was never saved a ``//`` path is kept as it is, and the operators that write
+    there refuse it (``adapters.lightmaps.resolve_output_folder``).
     """
     props = scene.lmdp
     values = {}
@@ -284,7 +286,7 @@ def settings_from_scene(scene):
         value = getattr(props, name)
         if name in _FLOAT_FIELDS:
             value = float(f"{value:.7g}")
-        elif name == "output_dir" and value:
+        elif name == "output_dir" and value and not (value.startswith("//") and not bpy.data.filepath):
             value = bpy.path.abspath(value)  # '//bakes/' is relative to the .blend file
         values[name] = value
     return Settings.from_mapping(values)

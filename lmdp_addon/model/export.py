@@ -8,17 +8,25 @@ P_indptr), shape=P_shape)`` every equation can be checked from the file alone:
 * in the log domain, where z underflows: ``log_z[i] == log_q[i] + logsumexp_j(log P_ij + log_z[j])``;
 * optimal policy (eq. 2.23): ``u*(j|i) = P_ij z_j / Σ_j P_ij z_j`` (``u_star_*`` arrays);
 * cost-to-go: ``J = -log_z / lambda_``.
+
+The file is written to a temporary name in the same folder and renamed only once complete, so a
+failed export leaves any earlier file of that name as it was.
 """
 import json
+import os
+import tempfile
 
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import LMDPError
 from .policy import optimal_policy, stratum_policy
 
 
 def export_npz(path, states, dynamics, lmdp, solution, extra=None):
-    """Write every array of the problem and its solution to ``path`` (see module docstring)."""
+    """Write every array of the problem and its solution to ``path`` (see module docstring;
+    ``.npz`` is appended when missing); returns the path written. Raises ``LMDPError`` with the
+    reason when the file cannot be written (nothing is left behind)."""
     m = dynamics.n_points
     nT = dynamics.n_terminals
     C = lmdp.n_channels
@@ -67,5 +75,27 @@ def export_npz(path, states, dynamics, lmdp, solution, extra=None):
         counts=json.dumps(dynamics.counts),
         extra=json.dumps(extra or {}),
     )
-    np.savez_compressed(path, **arrays)
+    return write_npz(path, arrays)
+
+
+def write_npz(path, arrays):
+    """``np.savez_compressed`` of ``arrays`` to ``path``, atomically: a temporary file in the same
+    folder, renamed over ``path`` once complete. A read-only ``path`` is never replaced."""
+    path = os.fspath(path)
+    if not path.lower().endswith(".npz"):
+        path += ".npz"
+    if os.path.isfile(path) and not os.stat(path).st_mode & 0o222:
+        raise LMDPError(f"{path} is read-only: choose another file path, or make it writable")
+    temporary = None
+    try:
+        fd, temporary = tempfile.mkstemp(prefix=".lmdp_", suffix=".npz", dir=os.path.dirname(path) or ".")
+        with os.fdopen(fd, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        os.replace(temporary, path)
+    except OSError as error:
+        if temporary is not None and os.path.exists(temporary):
+            os.remove(temporary)
+        reason = error.strerror or str(error)
+        raise LMDPError(f"Cannot write {path}: {reason}; choose another file path "
+                        "(in a folder you can write to)") from error
     return path

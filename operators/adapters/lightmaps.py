@@ -3,14 +3,24 @@
 
 Images: a float RGBA image of ``bake_resolution``² pixels named ``<object>_lmdp_indirect``,
 colour space Non-Color (linear data, shown and saved without any view transform), alpha 1 on the
-baked texels and their margin. The image carries the custom property ``lmdp_bake_object`` (the
-object's name); re-baking writes only into an image with that tag, so an image of the user that
-happens to have the same name is never touched (Blender then names the new one ``.001``).
+baked texels and their margin, with a fake user so that saving the .blend keeps it whatever uses
+it. The image carries the custom property ``lmdp_bake_object``, the object's key (its name, or
+``name_full`` such as ``"Floor [library.blend]"`` for a linked object); re-baking writes only into
+the local image with that tag, so an image of the user's that happens to have the same name is
+never touched (Blender then names the new one ``.001``).
+
+Files (with an output folder): the object's name made safe for every file system (no path
+separators or reserved characters, no leading dots, at most :data:`MAX_STEM_BYTES` bytes) plus
+``_lmdp_indirect.exr``, unique in the folder. ``bake_stats.json`` lists under ``"files"`` every
+file the add-on wrote there and for which object; a file that is neither in that list nor the
+file of one of the add-on's images was not written by LMDP and is never replaced (the lightmap
+gets the next free name, ``.001``, and a warning says so). A ``bake_stats.json`` the add-on did
+not write stops the bake before any work.
 
 :func:`write_lightmaps` first saves the new pixels as OpenEXR to temporary files in the output
-folder (when one is set), and only when that worked swaps them in: the pixels go into the
-add-on's own image of each object, the files replace the previous ones and
-``bake_stats.json`` is written. A failure leaves every image and file as it was.
+folder, then moves them all into place (all or nothing: a failure puts back every file it had
+replaced), and only then swaps the pixels into the images. A failure leaves every image and file
+as it was, with no temporary file or scratch image behind.
 """
 import json
 import os
@@ -24,25 +34,162 @@ from ...lmdp_addon.errors import SceneError
 #: Custom property naming the object an image was baked for (marks the add-on's own images).
 IMAGE_TAG = "lmdp_bake_object"
 STATS_FILE = "bake_stats.json"
+#: Prefix of the temporary files written next to the outputs (hidden, removed in every case).
+TEMP_PREFIX = ".lmdp_"
+#: Longest object-name part of a lightmap file name, in UTF-8 bytes (file systems take 255).
+MAX_STEM_BYTES = 120
+#: Characters no file name may hold on some file system (Windows' list; '/' everywhere).
+_RESERVED = frozenset('<>:"/\\|?*')
+_STATS_KEYS = frozenset({"mode", "settings", "objects"})
+
+
+# ---- The output folder ------------------------------------------------------------------------------
+
+def resolve_output_folder(output_dir, setting="Output Folder"):
+    """``output_dir`` as an absolute path ('' stays ''): ``//`` is the folder of the saved .blend
+    file, ``~`` the home folder. Raises ``SceneError`` for ``//`` in a file that was never saved
+    and for any other relative path (it would land wherever Blender was started from)."""
+    if not output_dir:
+        return ""
+    if output_dir.startswith("//"):
+        if not bpy.data.filepath:
+            raise SceneError(f"The {setting} '{output_dir}' is relative to the .blend file, which "
+                             "has not been saved: save the .blend first or use an absolute path")
+        output_dir = bpy.path.abspath(output_dir)
+    path = os.path.expanduser(output_dir)
+    if not os.path.isabs(path):
+        raise SceneError(f"The {setting} '{output_dir}' is a relative path (it would be written "
+                         "wherever Blender was started from): use an absolute path, or "
+                         f"'//{output_dir}' for a folder next to the saved .blend file")
+    return os.path.normpath(path)
 
 
 def prepare_output_folder(output_dir):
-    """``output_dir`` created (and checked writable) if set; raises ``SceneError`` otherwise."""
-    if output_dir:
+    """The absolute output folder (see :func:`resolve_output_folder`), created and checked
+    writable, or '' when none is set; raises ``SceneError`` if it cannot be used or holds a
+    ``bake_stats.json`` that LMDP did not write."""
+    folder = resolve_output_folder(output_dir)
+    if folder:
         try:
-            os.makedirs(output_dir, exist_ok=True)
+            os.makedirs(folder, exist_ok=True)
         except OSError as error:
-            raise SceneError(f"Cannot create the output folder {output_dir}: {error.strerror}; "
+            raise SceneError(f"Cannot create the output folder {folder}: {error.strerror}; "
                              "choose another Output Folder or clear it") from error
-        if not os.access(output_dir, os.W_OK):
-            raise SceneError(f"The output folder {output_dir} is not writable: choose another one")
-    return output_dir
+        if not os.access(folder, os.W_OK):
+            raise SceneError(f"The output folder {folder} is not writable: choose another one")
+        read_stats(folder)
+    return folder
 
 
-def own_image(object_name):
-    """The add-on's image for ``object_name`` (tagged), or None."""
-    wanted = object_name + IMAGE_SUFFIX
-    tagged = [im for im in bpy.data.images if im.get(IMAGE_TAG) == object_name]
+def read_stats(folder):
+    """The ``bake_stats.json`` of ``folder`` as a dict ({} if there is none); raises
+    ``SceneError`` when the file there was not written by LMDP (it is never replaced)."""
+    path = os.path.join(folder, STATS_FILE)
+    if not os.path.lexists(path):
+        return {}
+    try:
+        with open(path, encoding="utf-8") as fh:
+            stats = json.load(fh)
+    except (OSError, ValueError):
+        stats = None
+    if not isinstance(stats, dict) or not _STATS_KEYS <= stats.keys():
+        raise SceneError(f"{path} was not written by LMDP and would be replaced by the bake's "
+                         "statistics: move it away or choose another Output Folder")
+    return stats
+
+
+# ---- File names ---------------------------------------------------------------------------------------
+
+def safe_file_stem(name):
+    """``name`` as the start of a file name on any file system: reserved characters and control
+    characters become '_', leading and trailing dots and spaces go, at most
+    :data:`MAX_STEM_BYTES` UTF-8 bytes; "object" if nothing is left."""
+    stem = "".join("_" if c in _RESERVED or ord(c) < 32 or ord(c) == 127 else c for c in name)
+    stem = stem.strip(" .")
+    encoded = stem.encode("utf-8")
+    if len(encoded) > MAX_STEM_BYTES:
+        stem = encoded[:MAX_STEM_BYTES].decode("utf-8", "ignore").rstrip(" .")
+    return stem or "object"
+
+
+def _plain_file_name(name):
+    return (isinstance(name, str) and name not in ("", ".", "..") and os.path.basename(name) == name
+            and "/" not in name and "\\" not in name and not name.startswith(TEMP_PREFIX))
+
+
+def _same_path(a, b):
+    return os.path.normcase(os.path.normpath(a)) == os.path.normcase(os.path.normpath(b))
+
+
+def owned_files(folder, stats):
+    """{file name in ``folder``: object key} of the files LMDP wrote there: the ``"files"`` of its
+    statistics (or, for statistics written before that list, each object's image name + .exr)
+    and the files the add-on's images are loaded from."""
+    owned = {}
+    objects, files = stats.get("objects"), stats.get("files")
+    for name, entry in (objects.items() if isinstance(objects, dict) else ()):
+        if isinstance(entry, dict):
+            owned[entry.get("file") or f"{entry.get('image') or name + IMAGE_SUFFIX}.exr"] = name
+    owned.update(files if isinstance(files, dict) else {})
+    for image in _tagged_images():
+        if image.source == 'FILE' and image.filepath_raw:
+            path = bpy.path.abspath(image.filepath_raw)
+            if _same_path(os.path.dirname(path), folder):
+                owned[os.path.basename(path)] = image[IMAGE_TAG]
+    return {f: k for f, k in owned.items() if _plain_file_name(f) and isinstance(k, str)}
+
+
+def assign_files(objects, key_of, folder, owned, warnings):
+    """{object name: file name in ``folder``} for the ``objects`` (``ObjectBake``) being baked:
+    the file LMDP wrote for the same object before, else the first free name of
+    ``<safe name>_lmdp_indirect[.NNN].exr`` that no other object's file and no file of the user's
+    holds (names compared case-insensitively). Objects whose names are already safe pick first."""
+    previous = {}
+    for name, key in owned.items():
+        previous.setdefault(key, name)
+    owned_lower = {f.lower(): k for f, k in owned.items()}
+    used, files = set(), {}
+    for ob in sorted(objects, key=lambda ob: safe_file_stem(ob.name) != ob.name):
+        key = key_of(ob)
+        mine = previous.get(key)
+        if mine is not None and mine.lower() not in used:
+            files[ob.name] = mine
+            used.add(mine.lower())
+            continue
+        base, skipped = safe_file_stem(ob.name) + IMAGE_SUFFIX, None
+        for n in range(1000):
+            candidate = f"{base}.{n:03d}.exr" if n else f"{base}.exr"
+            low = candidate.lower()
+            if low in used or owned_lower.get(low, key) != key:
+                continue
+            if low not in owned_lower and os.path.lexists(os.path.join(folder, candidate)):
+                skipped = skipped or candidate
+                continue
+            break
+        else:
+            raise SceneError(f"No free file name for the lightmap of '{ob.name}' in {folder}: "
+                             "clear the folder or choose another Output Folder")
+        if skipped:
+            warnings.append(f"{os.path.join(folder, skipped)} was not written by LMDP: it is left "
+                            f"alone and the lightmap of '{ob.name}' is saved as {candidate}")
+        files[ob.name] = candidate
+        used.add(low)
+    return files
+
+
+# ---- Images -------------------------------------------------------------------------------------------
+
+def _tagged_images():
+    """The add-on's images: local (not linked, not overrides) and tagged."""
+    return [im for im in bpy.data.images if im.library is None
+            and getattr(im, "override_library", None) is None and isinstance(im.get(IMAGE_TAG), str)]
+
+
+def own_image(key, image_name=None):
+    """The add-on's local image for the object ``key`` (its name, or ``name_full`` when linked),
+    or None; the one named ``image_name`` (default ``key + IMAGE_SUFFIX``) if there are several."""
+    wanted = image_name or key + IMAGE_SUFFIX
+    tagged = [im for im in _tagged_images() if im[IMAGE_TAG] == key]
     for im in tagged:
         if im.name == wanted:
             return im
@@ -60,56 +207,24 @@ def _write_pixels(image, rgba):
     image.update()
 
 
-def _temporary_file(output_dir, suffix):
-    fd, path = tempfile.mkstemp(prefix=".lmdp_", suffix=suffix, dir=output_dir)
+def _temporary_file(folder, suffix):
+    fd, path = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=suffix, dir=folder)
     os.close(fd)
     return path
 
 
-def _write_temporary_files(result, output_dir):
-    """Scratch images of the new pixels and, with ``output_dir``, their EXR files and the
-    statistics as temporary files: ``(scratch images, [EXR per object], stats file or None)``.
-    Raises ``SceneError`` (nothing changed) if a file cannot be written."""
-    scratch, exr_files, stats_file = [], [], None
-    try:
-        for ob in result.objects:
-            im = _new_float_image(f"LMDP scratch {ob.name}", ob.resolution)
-            _write_pixels(im, ob.image)
-            scratch.append(im)
-            if output_dir:
-                exr_files.append(_temporary_file(output_dir, ".exr"))
-                im.filepath_raw = exr_files[-1]
-                im.file_format = 'OPEN_EXR'
-                im.save()
-        if output_dir:
-            stats_file = _temporary_file(output_dir, ".json")
-            with open(stats_file, "w", encoding="utf-8") as fh:
-                json.dump(result.stats(), fh, indent=2, default=_json_default)
-    except (OSError, RuntimeError) as error:
-        for im in scratch:
-            bpy.data.images.remove(im)
-        for path in exr_files + ([stats_file] if stats_file else []):
-            if os.path.exists(path):
-                os.remove(path)
-        raise SceneError(f"Could not write the lightmaps to {output_dir}: {error}; nothing was "
-                         "changed. Check the Output Folder") from error
-    return scratch, exr_files, stats_file
-
-
-def _swap_in(ob, exr_file, output_dir, warnings):
-    """The add-on's image of ``ob`` showing its new pixels: the EXR moved into place and
-    reloaded (with ``output_dir``), or a new packed image that takes the old one's users."""
-    image = own_image(ob.name)
+def _swap_in(ob, key, final, warnings):
+    """The add-on's image of ``ob`` showing its new pixels: reloaded from ``final`` (its EXR, now
+    in place) or, without a file, a new packed image that takes the old one's users."""
+    image = own_image(key, ob.image_name)
     if image is None:
-        wanted = ob.image_name
-        if wanted in bpy.data.images:
-            warnings.append(f"An image named '{wanted}' that LMDP did not create exists: it is "
-                            "left alone and the lightmap gets a new name")
-        image = _new_float_image(wanted, ob.resolution)
-        image[IMAGE_TAG] = ob.name
-    if output_dir:
-        final = os.path.join(output_dir, ob.image_name + ".exr")
-        os.replace(exr_file, final)
+        existing = bpy.data.images.get(ob.image_name)
+        if existing is not None and not isinstance(existing.get(IMAGE_TAG), str):
+            warnings.append(f"An image named '{ob.image_name}' that LMDP did not create exists: it "
+                            "is left alone and the lightmap gets a new name")
+        image = _new_float_image(ob.image_name, ob.resolution)
+        image[IMAGE_TAG] = key
+    if final:
         if image.packed_file is not None:
             image.unpack(method='REMOVE')
         image.source = 'FILE'
@@ -117,11 +232,13 @@ def _swap_in(ob, exr_file, output_dir, warnings):
         image.file_format = 'OPEN_EXR'
         image.colorspace_settings.name = 'Non-Color'
         image.reload()
+        image.use_fake_user = True  # kept on save even when nothing shows it
         return image
     fresh = _new_float_image(ob.image_name, ob.resolution)
     _write_pixels(fresh, ob.image)
     fresh.pack()  # generated pixels are otherwise lost when the .blend is saved
-    fresh[IMAGE_TAG] = ob.name
+    fresh[IMAGE_TAG] = key
+    fresh.use_fake_user = True
     if image.users:
         image.user_remap(fresh)  # nodes that showed the old lightmap show the new one
     name = image.name
@@ -130,18 +247,96 @@ def _swap_in(ob, exr_file, output_dir, warnings):
     return fresh
 
 
-def write_lightmaps(result, output_dir, warnings):
+# ---- Writing ------------------------------------------------------------------------------------------
+
+def _move_into_place(moves):
+    """Rename each ``(temporary, final)`` file of ``moves``, all or nothing: a file already at
+    ``final`` is first renamed to a hidden backup; on a failure every step is undone and the
+    error raised. The backups are removed once every file is in place."""
+    done = []  # [final, backup or None, moved]
+    try:
+        for temporary, final in moves:
+            backup = None
+            if os.path.lexists(final):
+                backup = _temporary_file(os.path.dirname(final), ".old")
+                os.replace(final, backup)
+            done.append([final, backup, False])
+            os.replace(temporary, final)
+            done[-1][2] = True
+    except OSError:
+        for final, backup, moved in reversed(done):
+            try:
+                if backup is not None:
+                    os.replace(backup, final)
+                elif moved:
+                    os.remove(final)
+            except OSError:
+                pass
+        raise
+    for _, backup, _ in done:
+        if backup is not None:
+            _remove_quietly(backup)
+
+
+def _remove_quietly(path):
+    try:
+        if os.path.lexists(path):
+            os.remove(path)
+    except OSError:
+        pass
+
+
+def _stats_payload(result, files, key_of, owned, folder):
+    stats = result.stats()
+    for ob in result.objects:
+        stats["objects"][ob.name]["file"] = files[ob.name]
+    kept = {f: k for f, k in owned.items() if os.path.lexists(os.path.join(folder, f))}
+    stats["files"] = {**kept, **{files[ob.name]: key_of(ob) for ob in result.objects}}
+    return stats
+
+
+def write_lightmaps(result, output_dir, warnings, keys=None):
     """Main thread: the lightmaps of ``result`` (a ``BakeResult``) into the add-on's images and,
-    with ``output_dir``, its files; returns ``{object name: image}`` and appends to ``warnings``.
-    Raises ``SceneError`` (nothing changed) if the files cannot be written."""
-    scratch, exr_files, stats_file = _write_temporary_files(result, output_dir)
-    images = {ob.name: _swap_in(ob, exr_files[i] if output_dir else None, output_dir, warnings)
-              for i, ob in enumerate(result.objects)}
+    with ``output_dir`` (absolute, from :func:`prepare_output_folder`), its files; ``keys`` maps
+    an object name to the object's key (default: the name). Returns ``{object name: image}`` and
+    appends to ``warnings``. Raises ``SceneError`` (nothing changed) if the files cannot be
+    written."""
+    keys = keys or {}
+
+    def key_of(ob):
+        return keys.get(ob.name, ob.name)
+
+    files, stats = {}, None
     if output_dir:
-        os.replace(stats_file, os.path.join(output_dir, STATS_FILE))
-    for im in scratch:
-        bpy.data.images.remove(im)
-    return images
+        owned = owned_files(output_dir, read_stats(output_dir))
+        files = assign_files(result.objects, key_of, output_dir, owned, warnings)
+        stats = _stats_payload(result, files, key_of, owned, output_dir)
+    finals = {name: os.path.join(output_dir, f) for name, f in files.items()}
+    scratch, moves = [], []
+    try:
+        for ob in result.objects:
+            im = _new_float_image(f"LMDP scratch {ob.name}", ob.resolution)
+            scratch.append(im)
+            _write_pixels(im, ob.image)
+            if output_dir:
+                moves.append((_temporary_file(output_dir, ".exr"), finals[ob.name]))
+                im.filepath_raw = moves[-1][0]
+                im.file_format = 'OPEN_EXR'
+                im.save()
+        if output_dir:
+            moves.append((_temporary_file(output_dir, ".json"), os.path.join(output_dir, STATS_FILE)))
+            with open(moves[-1][0], "w", encoding="utf-8") as fh:
+                json.dump(stats, fh, indent=2, default=_json_default)
+            _move_into_place(moves)
+    except (OSError, RuntimeError) as error:
+        raise SceneError(f"Could not write the lightmaps to {output_dir}: {error}; nothing was "
+                         "changed. Check the Output Folder") from error
+    finally:
+        for im in scratch:
+            bpy.data.images.remove(im)
+        for temporary, _ in moves:
+            _remove_quietly(temporary)
+    return {ob.name: _swap_in(ob, key_of(ob), finals.get(ob.name), warnings) for ob in result.objects}
 
 
 def _json_default(value):

@@ -1,19 +1,26 @@
 """Material hook-up of baked lightmaps (Bake's ``hook_up``) and its removal.
 
-* ``'MULTIPLY'``: in each material used only by this object, an Image Texture node "LMDP
-  Lightmap" (the lightmap, default UV map = the render UV map that was baked) and a Mix node
-  "LMDP Lightmap Multiply" (Multiply, factor 1) are inserted in front of the Base Color (Principled
-  BSDF) or Color (Diffuse BSDF) input; whatever fed that input (a link or its value) feeds the Mix
-  node's A input. Nothing else is changed; :func:`unhook_multiply` removes both nodes and
-  restores the link or value.
+* ``'MULTIPLY'``: in each material the object renders with and no other object uses, an Image
+  Texture node "LMDP Lightmap" (the lightmap, default UV map = the render UV map that was baked)
+  and a Mix node "LMDP Lightmap Multiply" (Multiply, factor 1) are inserted in front of the Base
+  Color (Principled BSDF) or Color (Diffuse BSDF) input; whatever fed that input (a link or its
+  value) feeds the Mix node's A input. Nothing else is changed; :func:`unhook_multiply` removes
+  both nodes and restores the link or value.
 * ``'PREVIEW'``: a material "<object>_lmdp_preview" (Emission shader showing the lightmap) is
   linked to the object's material slots at *object* level (``slot.link = 'OBJECT'``), so the
   mesh's own materials stay assigned to the mesh; :func:`unhook_preview` restores each slot's
   previous link and object material.
+
+The materials an object renders with are read through the preview (:func:`render_materials`),
+so the two hook-ups can be stacked in any order and removed together. Only local data is ever
+edited: :func:`check_hook_up` refuses, before the bake, a hook-up that would edit linked library
+data or a library override (Blender would not save the edit, or would reset it on reload).
 """
 import json
 
 import bpy
+
+from ...lmdp_addon.errors import SceneError
 
 #: Custom property of preview materials, and of objects whose slots show one (JSON of the slots).
 PREVIEW_TAG = "lmdp_preview_material"
@@ -33,26 +40,108 @@ HOOK_UP_ITEMS = (
 )
 
 
-def hook_up(images, mode):
-    """Show each lightmap of ``images`` ({object name: image}) in its object's materials the
-    ``mode`` way (:data:`HOOK_UP_ITEMS`); returns the warnings."""
+# ---- Library data ---------------------------------------------------------------------------------
+
+def is_local(id_data):
+    """True for a data-block of this file that is neither linked nor a library override."""
+    return id_data.library is None and getattr(id_data, "override_library", None) is None
+
+
+def _origin(id_data):
+    """'linked from <library>' or 'a library override of <library>' for a non-local data-block."""
+    if id_data.library is not None:
+        return f"linked from {id_data.library.filepath}"
+    reference = id_data.override_library.reference
+    library = reference.library.filepath if reference is not None and reference.library else "a library"
+    return f"a library override of {library}"
+
+
+def check_hook_up(objects, mode):
+    """Before any work: raise ``SceneError`` naming the object or material when the ``mode``
+    hook-up of ``objects`` would edit data that is not local."""
+    users = None
+    for obj in objects:
+        if mode == "PREVIEW":
+            if not is_local(obj):
+                raise SceneError(f"'{obj.name}' is {_origin(obj)}: the Preview hook-up would edit "
+                                 "library data, which Blender does not keep. Make the object local "
+                                 "(Object > Relations > Make Local) or bake with Hook Up: None")
+            if not obj.material_slots and not is_local(obj.data):
+                raise SceneError(f"The mesh of '{obj.name}' is {_origin(obj.data)} and has no "
+                                 "material slot for the Preview hook-up: make the mesh local or bake "
+                                 "with Hook Up: None")
+        elif mode == "MULTIPLY":
+            users = users if users is not None else material_users()
+            for mat in _multiply_targets(obj, [], users)[0]:
+                if not is_local(mat):
+                    raise SceneError(
+                        f"Material '{mat.name}' of '{obj.name}' is {_origin(mat)}: the Multiply "
+                        "hook-up would edit library data, which Blender does not keep. Make the "
+                        "material local (Object > Relations > Make Local > Selected Objects, Data "
+                        "and Materials) or bake with Hook Up: Preview or None")
+
+
+def hook_up(targets, mode):
+    """Show each lightmap of ``targets`` ([(object, image)]) in its object's materials the
+    ``mode`` way (:data:`HOOK_UP_ITEMS`); returns the warnings. Run :func:`check_hook_up` first."""
     warnings = []
-    if mode == "NONE":
-        return warnings
-    for name, image in images.items():
-        obj = bpy.data.objects.get(name)
-        if obj is None:
-            continue
+    users = material_users() if mode == "MULTIPLY" else None
+    for obj, image in targets:
         if mode == "MULTIPLY":
-            warnings += hook_multiply(obj, image)
+            warnings += hook_multiply(obj, image, users)
         elif mode == "PREVIEW":
             hook_preview(obj, image)
     return warnings
 
 
-def _own_materials(obj):
-    return {slot.material for slot in obj.material_slots if slot.material is not None}
+# ---- What an object renders with ----------------------------------------------------------------------
 
+def _material_by_full_name(name):
+    if not name:
+        return None
+    return next((m for m in bpy.data.materials if m.name_full == name), None)
+
+
+def _saved_slots(obj):
+    return json.loads(obj[PREVIEW_SAVED]) if PREVIEW_SAVED in obj else None
+
+
+def _is_preview(mat):
+    return mat is not None and PREVIEW_TAG in mat
+
+
+def _underlying_material(obj, index, saved):
+    """The material slot ``index`` of ``obj`` shows when no preview covers it."""
+    slots = saved["slots"] if saved else []
+    if index < len(slots) and slots[index]["link"] == 'OBJECT':
+        return _material_by_full_name(slots[index]["material"])
+    materials = obj.data.materials if obj.data is not None else ()
+    return materials[index] if index < len(materials) else None
+
+
+def material_users():
+    """{material: full names of the objects that render with it} over the whole file."""
+    users = {}
+    for obj in bpy.data.objects:
+        for mat in render_materials(obj):
+            users.setdefault(mat, []).append(obj.name_full)
+    return users
+
+
+def render_materials(obj):
+    """The materials ``obj`` renders with, the ones under LMDP's preview material included."""
+    saved = _saved_slots(obj)
+    materials = []
+    for index, slot in enumerate(obj.material_slots):
+        mat = slot.material
+        if _is_preview(mat):
+            mat = _underlying_material(obj, index, saved)
+        if mat is not None and not _is_preview(mat) and mat not in materials:
+            materials.append(mat)
+    return materials
+
+
+# ---- MULTIPLY -----------------------------------------------------------------------------------------
 
 def _colour_input(tree):
     """(node, input socket) of the BSDF whose colour the lightmap multiplies, or None."""
@@ -74,13 +163,22 @@ def _mix_colour_sockets(mix):
     return a, b, result
 
 
-def _insert_multiply(tree, bsdf, socket, image):
-    """Image Texture x whatever fed ``socket`` (a link or its value), into ``socket``."""
+def _image_node(tree, image, location):
     tex = tree.nodes.new("ShaderNodeTexImage")
     tex.name = tex.label = NODE_IMAGE
     tex.image = image
     tex.interpolation = 'Linear'
-    tex.location = (bsdf.location.x - 520, bsdf.location.y - 260)
+    tex.location = location
+    return tex
+
+
+def _insert_multiply(tree, bsdf, socket, image):
+    """Image Texture x whatever fed ``socket`` (a link or its value), into ``socket``. An "LMDP
+    Lightmap" node left over from a hook-up whose Mix node was deleted is reused."""
+    tex = tree.nodes.get(NODE_IMAGE)
+    if tex is None or tex.type != 'TEX_IMAGE':
+        tex = _image_node(tree, image, (bsdf.location.x - 520, bsdf.location.y - 260))
+    tex.image = image
     mix = tree.nodes.new("ShaderNodeMix")
     mix.name = mix.label = NODE_MULTIPLY
     mix.data_type = 'RGBA'
@@ -96,37 +194,62 @@ def _insert_multiply(tree, bsdf, socket, image):
     tree.links.new(result, socket)
 
 
-def hook_multiply(obj, image):
-    """Insert the lightmap multiplied into the colour of ``obj``'s own materials; returns warnings."""
-    warnings = []
-    for mat in _own_materials(obj):
-        users = [o.name for o in bpy.data.objects
-                 if o != obj and any(s.material == mat for s in o.material_slots)]
-        if users:
-            warnings.append(f"Material '{mat.name}' is shared with {', '.join(users[:3])}: not hooked "
+def _update_multiply(tree, image):
+    """Point an existing MULTIPLY hook-up at ``image`` (its image node remade if it was deleted)."""
+    mix = tree.nodes[NODE_MULTIPLY]
+    tex = tree.nodes.get(NODE_IMAGE)
+    if tex is None:
+        tex = _image_node(tree, image, (mix.location.x - 280, mix.location.y - 140))
+        tree.links.new(tex.outputs["Color"], _mix_colour_sockets(mix)[1])
+    tex.image = image
+
+
+def _multiply_targets(obj, warnings, users):
+    """(materials of ``obj`` the MULTIPLY hook-up edits, their (node, socket) or None if already
+    hooked up); appends why the others are skipped to ``warnings``. ``users``: :func:`material_users`."""
+    materials, inputs = [], []
+    for mat in render_materials(obj):
+        others = [name for name in users.get(mat, ()) if name != obj.name_full]
+        if others:
+            warnings.append(f"Material '{mat.name}' is shared with {', '.join(others[:3])}: not hooked "
                             "up (a lightmap belongs to one object); use the Preview hook-up instead")
             continue
         tree = mat.node_tree
         if tree is None:
             continue
-        if NODE_MULTIPLY in tree.nodes:
-            tree.nodes[NODE_IMAGE].image = image
-            continue
-        target = _colour_input(tree)
-        if target is None:
+        target = None if NODE_MULTIPLY in tree.nodes else _colour_input(tree)
+        if target is None and NODE_MULTIPLY not in tree.nodes:
             warnings.append(f"Material '{mat.name}' has no Principled or Diffuse BSDF at its output: "
                             "not hooked up")
             continue
-        _insert_multiply(tree, *target, image)
+        materials.append(mat)
+        inputs.append(target)
+    return materials, inputs
+
+
+def hook_multiply(obj, image, users=None):
+    """Insert the lightmap multiplied into the colour of ``obj``'s own materials; returns warnings.
+    ``users``: :func:`material_users` (computed if not given)."""
+    warnings = []
+    users = users if users is not None else material_users()
+    for mat, target in zip(*_multiply_targets(obj, warnings, users)):
+        if target is None:
+            _update_multiply(mat.node_tree, image)
+        else:
+            _insert_multiply(mat.node_tree, *target, image)
     return warnings
 
 
 def unhook_multiply(obj):
-    """Remove the MULTIPLY hook-up from ``obj``'s materials, restoring the colour input."""
-    removed = 0
-    for mat in _own_materials(obj):
+    """Remove the MULTIPLY hook-up from ``obj``'s local materials, restoring the colour input;
+    returns (materials restored, names of the non-local materials left alone)."""
+    removed, left = 0, []
+    for mat in render_materials(obj):
         tree = mat.node_tree
         if tree is None or NODE_MULTIPLY not in tree.nodes:
+            continue
+        if not is_local(mat):
+            left.append(mat.name)
             continue
         mix = tree.nodes[NODE_MULTIPLY]
         a, _, result = _mix_colour_sockets(mix)
@@ -143,59 +266,98 @@ def unhook_multiply(obj):
         if NODE_IMAGE in tree.nodes:
             tree.nodes.remove(tree.nodes[NODE_IMAGE])
         removed += 1
-    return removed
+    return removed, left
+
+
+# ---- PREVIEW ------------------------------------------------------------------------------------------
+
+def _build_preview_tree(mat, image):
+    tree = mat.node_tree
+    if tree is None:
+        mat.use_nodes = True
+        tree = mat.node_tree
+    tree.nodes.clear()
+    out = tree.nodes.new("ShaderNodeOutputMaterial")
+    out.location = (300, 0)
+    emission = tree.nodes.new("ShaderNodeEmission")
+    tex = _image_node(tree, image, (-300, 0))
+    tree.links.new(tex.outputs["Color"], emission.inputs["Color"])
+    tree.links.new(emission.outputs[0], out.inputs["Surface"])
 
 
 def preview_material(obj, image):
-    """The tagged preview material of ``obj`` (Emission = lightmap), created on first use."""
-    name = f"{obj.name}_lmdp_preview"
-    mat = next((m for m in bpy.data.materials if m.get(PREVIEW_TAG) == obj.name), None)
+    """The tagged preview material of ``obj`` (Emission = lightmap), created on first use (and
+    its nodes rebuilt if its image node was deleted)."""
+    mat = next((m for m in bpy.data.materials if m.get(PREVIEW_TAG) == obj.name and is_local(m)), None)
     if mat is None:
-        mat = bpy.data.materials.new(name)
+        mat = bpy.data.materials.new(f"{obj.name}_lmdp_preview")
         mat[PREVIEW_TAG] = obj.name
-        tree = mat.node_tree
-        if tree is None:
-            mat.use_nodes = True
-            tree = mat.node_tree
-        tree.nodes.clear()
-        out = tree.nodes.new("ShaderNodeOutputMaterial")
-        out.location = (300, 0)
-        emission = tree.nodes.new("ShaderNodeEmission")
-        tex = tree.nodes.new("ShaderNodeTexImage")
-        tex.name = tex.label = NODE_IMAGE
-        tex.location = (-300, 0)
-        tree.links.new(tex.outputs["Color"], emission.inputs["Color"])
-        tree.links.new(emission.outputs[0], out.inputs["Surface"])
+    if mat.node_tree is None or mat.node_tree.nodes.get(NODE_IMAGE) is None:
+        _build_preview_tree(mat, image)
     mat.node_tree.nodes[NODE_IMAGE].image = image
     return mat
 
 
+def _slot_state(slot):
+    """A slot's link and its object-level material (kept even while the slot shows the mesh's)."""
+    link = slot.link
+    slot.link = 'OBJECT'
+    material = slot.material
+    slot.link = link
+    return {"link": link, "material": material.name_full if material is not None else None}
+
+
 def hook_preview(obj, image):
-    """Show the preview material on every slot of ``obj`` at object level (mesh data untouched)."""
+    """Show the preview material on every slot of ``obj`` at object level (mesh data untouched,
+    except for one empty slot added to a mesh that has none). The slots' previous state is kept
+    on the object, extended with any slot added since an earlier preview."""
     mat = preview_material(obj, image)
-    if PREVIEW_SAVED not in obj:
+    saved = _saved_slots(obj)
+    if saved is None:
         added = False
         if not obj.material_slots:
             obj.data.materials.append(None)
             added = True
-        saved = [{"link": s.link, "material": s.material.name if (s.link == 'OBJECT' and s.material) else None}
-                 for s in obj.material_slots]
-        obj[PREVIEW_SAVED] = json.dumps({"slots": saved, "added_slot": added})
-    for slot in obj.material_slots:
+        saved = {"slots": [], "added_slot": added}
+    slots = list(obj.material_slots)
+    saved["slots"] += [_slot_state(s) for s in slots[len(saved["slots"]):]]
+    obj[PREVIEW_SAVED] = json.dumps(saved)
+    for slot in slots:
         slot.link = 'OBJECT'
         slot.material = mat
 
 
 def unhook_preview(obj):
-    """Restore the slots saved by :func:`hook_preview`; returns True if there was a preview."""
-    if PREVIEW_SAVED not in obj:
+    """Restore the slots saved by :func:`hook_preview`; returns True if there was a preview.
+    A slot added later that shows the preview is emptied and linked to the mesh again."""
+    saved = _saved_slots(obj)
+    if saved is None:
         return False
-    saved = json.loads(obj[PREVIEW_SAVED])
-    for slot, old in zip(obj.material_slots, saved["slots"]):
-        slot.link = 'OBJECT'
-        slot.material = bpy.data.materials.get(old["material"]) if old["material"] else None
-        slot.link = old["link"]
+    for index, slot in enumerate(obj.material_slots):
+        if index < len(saved["slots"]):
+            old = saved["slots"][index]
+            slot.link = 'OBJECT'
+            slot.material = _material_by_full_name(old["material"])
+            slot.link = old["link"]
+        elif slot.link == 'OBJECT' and _is_preview(slot.material):
+            slot.material = None
+            slot.link = 'DATA'
     if saved.get("added_slot") and len(obj.data.materials) == 1 and obj.data.materials[0] is None:
         obj.data.materials.pop(index=0)
     del obj[PREVIEW_SAVED]
     return True
+
+
+def remove_hook_up(obj):
+    """Remove both hook-ups from ``obj`` (the preview first: it hides the materials MULTIPLY
+    hooked up). Returns (materials restored, whether a preview was removed, names of the
+    non-local data left alone)."""
+    left = []
+    if is_local(obj):
+        preview = unhook_preview(obj)
+    else:
+        preview = False
+        if PREVIEW_SAVED in obj:
+            left.append(obj.name_full)
+    removed, linked = unhook_multiply(obj)
+    return removed, preview, left + linked

@@ -8,7 +8,7 @@ hook-up are described in :mod:`..adapters.lightmaps` and :mod:`..adapters.materi
 import bpy
 from bpy.props import EnumProperty
 
-from ..adapters.materials import HOOK_UP_ITEMS, unhook_multiply, unhook_preview
+from ..adapters.materials import HOOK_UP_ITEMS, remove_hook_up
 from ..bake_steps import SOLVE_FIRST, apply_bake, bake_inputs, compute_bake
 from ..common import report_error, report_warnings, selected_meshes
 from ..jobs import EngineJob, ready
@@ -39,7 +39,7 @@ class LMDP_OT_bake(EngineJob, bpy.types.Operator):
                      message=SOLVE_FIRST.format(mode=mode.replace('_', ' ').title()))
 
     def prepare(self, context):
-        return bake_inputs(context, self.settings)
+        return bake_inputs(context, self.settings, self.hook_up)
 
     def compute(self, inputs, settings, progress):
         return compute_bake(inputs, settings, progress)
@@ -68,9 +68,13 @@ class LMDP_OT_remove_bake_hookup(bpy.types.Operator):
         except LMDPError as error:
             return report_error(self, error)
         nodes = previews = 0
+        left = []
         for obj in objects:
-            nodes += unhook_multiply(obj)
-            previews += int(unhook_preview(obj))
+            removed, preview, linked = remove_hook_up(obj)
+            nodes, previews, left = nodes + removed, previews + int(preview), left + linked
+        if left:
+            self.report({'WARNING'}, f"Left library data alone (linked or overridden): "
+                                     f"{', '.join(sorted(set(left))[:5])}; make it local to remove its hook-up")
         self.report({'INFO'}, f"Removed the lightmap nodes from {nodes} material(s) and the preview "
                               f"from {previews} object(s)")
         return {'FINISHED'}

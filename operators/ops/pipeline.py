@@ -18,10 +18,12 @@ from ...lmdp_addon.errors import SceneError
 from ...lmdp_addon.model import pipeline
 from ...lmdp_addon.model.export import export_npz
 from ..adapters.extract import extract_scene
+from ..adapters.lightmaps import resolve_output_folder
 from ..adapters.materials import HOOK_UP_ITEMS
 from ..bake_steps import apply_bake, compute_bake, planned_bake_inputs
 from ..common import report_error, report_warnings, selected_meshes
 from ..jobs import EngineJob, ready
+from ..properties import BLEND_RELATIVE_PATH
 from ..session import format_bytes, session_for
 
 
@@ -173,7 +175,7 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
         scene, names = capture_scene(context)
         pipeline.check_build(scene, self.settings)
         # Every bake check runs now, before any work (a mesh without UV map is reported here).
-        bake = planned_bake_inputs(scene, names, self.settings) if self.bake else None
+        bake = planned_bake_inputs(context, scene, names, self.settings, self.hook_up) if self.bake else None
         return scene, names, bake
 
     def compute(self, inputs, settings, progress):
@@ -213,8 +215,9 @@ class LMDP_OT_export_npz(bpy.types.Operator, ExportHelper):
     filter_glob: StringProperty(default="*.npz", options={'HIDDEN'})
     filepath: StringProperty(
         name="File Path",
-        description="Where to write the .npz file (empty: lmdp.npz in the Output Directory)",
-        subtype='FILE_PATH', default="")
+        description="Where to write the .npz file ('//' is next to the saved .blend file; empty: "
+                    "lmdp.npz in the Output Folder)",
+        subtype='FILE_PATH', default="", options=BLEND_RELATIVE_PATH)
 
     @classmethod
     def poll(cls, context):
@@ -224,24 +227,37 @@ class LMDP_OT_export_npz(bpy.types.Operator, ExportHelper):
         try:
             session = session_for(context.scene)
             solution = session.require("solution")
-            path = self.filepath
-            if not path:
-                out = bpy.path.abspath(context.scene.lmdp.output_dir)
-                if not out:
-                    raise SceneError("Set a file path (filepath=...) or an Output Directory to export to")
-                path = os.path.join(out, "lmdp.npz")
-            path = bpy.path.abspath(path)
-            if not path.endswith(".npz"):
-                path += ".npz"
-            folder = os.path.dirname(path)
-            if folder and not os.path.isdir(folder):
-                raise SceneError(f"The folder {folder} does not exist: create it or pick another file path")
+            path = export_path(self.filepath, context.scene.lmdp.output_dir)
             export_npz(path, session.require("states"), session.require("dynamics"), session.require("lmdp"),
                        solution, extra={"objects": list(session.object_names), "blend": bpy.data.filepath})
         except Exception as error:
             return report_error(self, error)
         self.report({'INFO'}, f"Exported the LMDP to {path}")
         return {'FINISHED'}
+
+
+def export_path(filepath, output_dir):
+    """The absolute .npz path of Export: ``filepath`` (``//`` next to the saved .blend, ``~``
+    home, otherwise relative to the working folder; a folder gets ``lmdp.npz``), or ``lmdp.npz``
+    in the Output Folder when it is empty. Raises ``SceneError`` for ``//`` in an unsaved file,
+    no path at all, or a folder that does not exist."""
+    if not filepath:
+        folder = resolve_output_folder(output_dir)
+        if not folder:
+            raise SceneError("Set a file path (filepath=...) or an Output Folder to export to")
+        path = os.path.join(folder, "lmdp.npz")
+    else:
+        path = resolve_output_folder(filepath, "file path") if filepath.startswith("//") else filepath
+        path = os.path.abspath(os.path.expanduser(path))
+        if os.path.isdir(path) or filepath.endswith(("/", os.sep)):
+            path = os.path.join(path, "lmdp.npz")
+    if not path.lower().endswith(".npz"):
+        path += ".npz"
+    folder = os.path.dirname(path)
+    if not os.path.isdir(folder):
+        what = "is a file, not a folder" if os.path.exists(folder) else "does not exist"
+        raise SceneError(f"The folder {folder} {what}: create it or pick another file path")
+    return path
 
 
 classes = (
