@@ -124,7 +124,8 @@ def lightmap_picture(extension, scene, path, steps):
     picture; the materials are restored afterwards. None when nothing was baked."""
     lightmaps = submodule(extension, "operators.adapters.lightmaps")
     materials = submodule(extension, "operators.adapters.materials")
-    baked = [(obj, lightmaps.own_image(obj.name)) for obj in scene.objects if obj.type == 'MESH']
+    baked = [(obj, lightmaps.own_image(obj.name_full)) for obj in scene.objects
+             if obj.type == 'MESH' and materials.is_local(obj)]
     baked = [(obj, image) for obj, image in baked if image is not None]
     if not baked:
         return None
