@@ -344,3 +344,18 @@ def test_a_faceless_mesh_whose_modifiers_make_faces_carries_states(small, lmdp_e
     scene = s.require("scene")
     assert np.any(s.require("states").point_object == scene.object_names.index("Lathe"))
     assert not any("no faces" in w for w in scene.warnings), scene.warnings
+
+
+def test_a_faceless_instancer_keeps_its_instances_carrying_states(small, lmdp_ext):
+    """Vertex instancing from a mesh of points: the instances, not the instancer, have faces."""
+    points = faceless("Scatter", vertices=((0.6, 0.6, 0.05), (-0.6, 0.6, 0.05)), edges=())
+    bpy.ops.mesh.primitive_cube_add(size=0.1)
+    pebble = bpy.context.object
+    pebble.name = "Pebble"
+    pebble.parent = points
+    points.instance_type = 'VERTS'
+    select([points, small["Floor"]])
+    assert bpy.ops.lmdp.sample_states() == {'FINISHED'}
+    scene = session(lmdp_ext).require("scene")
+    carried = dict(zip(scene.object_names, scene.object_carries_states))
+    assert carried["Scatter/Pebble#0"] and carried["Scatter/Pebble#1"] and not carried["Pebble"]
