@@ -46,22 +46,34 @@ def mode_holding_mesh(obj):
     return None
 
 
-def face_count(obj, context=None):
+def face_count(obj, context=None, instancers=None):
     """Faces of the mesh object ``obj`` as the LMDP captures it.
 
     With ``context`` and modifiers: the faces of the evaluated mesh (modifiers may make faces,
     like Screw or Skin, or remove them all). Otherwise the faces of its mesh, in Edit Mode those
-    of the edit mesh (what the user sees); without ``context`` (``poll``, which never evaluates
-    the depsgraph) a faceless mesh with modifiers counts as 1 face."""
+    of the edit mesh (what the user sees). An object whose instances carry its states (vertex /
+    face instancing, geometry-nodes instances: its ``session_uid`` in ``instancers``) counts as
+    1 face; so does, without ``context`` (``poll``, which never evaluates the depsgraph), a
+    faceless mesh with modifiers or instancing."""
     mesh = obj.data
     if context is not None and obj.modifiers:
         evaluated = obj.evaluated_get(context.evaluated_depsgraph_get())
-        return len(evaluated.data.polygons) if evaluated.data is not None else 0
-    if mesh.is_editmode:
+        count = len(evaluated.data.polygons) if evaluated.data is not None else 0
+    elif mesh.is_editmode:
         count = len(bmesh.from_edit_mesh(mesh).faces)
     else:
         count = len(mesh.polygons)
-    return 1 if count == 0 and context is None and obj.modifiers else count
+    if count:
+        return count
+    if context is None:
+        return int(bool(obj.modifiers) or obj.instance_type != 'NONE')
+    return int(instancers is not None and obj.session_uid in instancers)
+
+
+def instancer_uids(context):
+    """``session_uid`` of every object whose evaluated instances are in ``context``'s depsgraph."""
+    return {inst.parent.original.session_uid for inst in context.evaluated_depsgraph_get().object_instances
+            if inst.is_instance and inst.parent is not None}
 
 
 def no_faces_reason(obj):
@@ -94,14 +106,17 @@ def selected_meshes(context, evaluate=True):
         more = "" if len(selected) <= 5 else f" and {len(selected) - 5} more"
         raise SceneError(f"Select at least one mesh object: the selection ({names}{more}) "
                          "has no mesh (the selected meshes carry the LMDP states)")
-    usable, skipped = [], []
+    usable, skipped, instancers = [], [], None
     for obj in meshes:
         if obj.hide_render:  # the capture ignores it, as Cycles does
             skipped.append((obj, "is disabled in renders (camera icon off)"))
-        elif not face_count(obj, context if evaluate else None):
-            skipped.append((obj, no_faces_reason(obj)))
-        else:
+            continue
+        if evaluate and instancers is None and not face_count(obj, context):
+            instancers = instancer_uids(context)  # once, and only for a faceless mesh
+        if face_count(obj, context if evaluate else None, instancers):
             usable.append(obj)
+        else:
+            skipped.append((obj, no_faces_reason(obj)))
     if not usable:
         listed = "; ".join(f"'{obj.name}' {reason}" for obj, reason in skipped[:5])
         more = "" if len(skipped) <= 5 else f" and {len(skipped) - 5} more"

@@ -358,4 +358,4 @@ def test_a_faceless_instancer_keeps_its_instances_carrying_states(small, lmdp_ex
     assert bpy.ops.lmdp.sample_states() == {'FINISHED'}
     scene = session(lmdp_ext).require("scene")
     carried = dict(zip(scene.object_names, scene.object_carries_states))
-    assert carried["Scatter/Pebble#0"] and carried["Scatter/Pebble#1"] and not carried["Pebble"]
+    assert carried["Scatter/Pebble#0"] and carried["Scatter/Pebble#1"] and not carried["Pebble"], (carried, scene.warnings)
