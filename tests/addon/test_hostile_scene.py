@@ -304,12 +304,12 @@ def test_faceless_meshes_in_the_selection_are_skipped_and_named(small, lmdp_ext,
     messages = {"Edges": "'Edges': it has no faces", "Points": "'Points': it has no faces",
                 "Gone": "'Gone': it has no faces after its modifiers",
                 "NoRender": "'NoRender': it is disabled in renders (camera icon off)"}
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}                # not "not part of the captured scene"
+    assert sorted(o.name for o in session(lmdp_ext).require("bake").objects) == ["Box", "Floor"]
     assert bpy.ops.lmdp.sample_states() == {'FINISHED'}
     warnings = " | ".join(session(lmdp_ext).require("scene").warnings)
     assert all(text in warnings for text in messages.values()), warnings
     assert bpy.ops.lmdp.build_dynamics() == {'FINISHED'} and bpy.ops.lmdp.solve() == {'FINISHED'}
-    assert bpy.ops.lmdp.bake() == {'FINISHED'}                # not "not part of the captured scene"
-    assert sorted(o.name for o in session(lmdp_ext).require("bake").objects) == ["Box", "Floor"]
     assert bpy.ops.lmdp.show_desirability() == {'FINISHED'}
     skipped = " | ".join(session(lmdp_ext).require("display").skipped)
     assert "Edges: has no faces" in skipped and "Gone: has no faces after its modifiers" in skipped, skipped
