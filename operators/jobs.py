@@ -194,7 +194,7 @@ def ready(cls, context, selection=False, stage=None, message=None):
     reason = _busy_message()
     if not reason and selection:
         try:
-            selected_meshes(context)
+            selected_meshes(context, evaluate=False)
         except SceneError as error:
             reason = str(error)
     if not reason and stage is not None:

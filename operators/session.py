@@ -15,6 +15,8 @@ session never holds a solution of dynamics that are no longer there. A stored ``
 never changed in place: storing makes a new one, so a job that holds the previous one keeps a
 consistent set of stages.
 
+Results are tied to Blender objects by ``session_uid`` (:func:`captured_index`), never by name.
+
 Only the main thread touches the store (operators write it in ``apply``; the panel and the
 operators' ``poll`` read it with :func:`peek`).
 """
@@ -29,6 +31,7 @@ from bpy.app.handlers import persistent
 
 from ..lmdp_addon.errors import StageOrderError
 from ..lmdp_addon.model.pipeline import LMDPResult
+from .adapters.extract import object_fingerprint
 
 #: stage -> the stages it is computed from (in pipeline order).
 STAGE_INPUTS = {
@@ -243,6 +246,51 @@ def format_seconds(seconds):
     if seconds < 120.0:
         return f"{seconds:.2f} s"
     return f"{seconds / 60.0:.1f} min"
+
+
+# -- the objects of the captured scene ----------------------------------------------------------------
+# Results are tied to Blender objects by ``session_uid`` (adapters.extract.CapturedScene), never
+# by name: renaming or swapping names keeps each object's states on that object.
+
+def captured_lookup(scene):
+    """A function ``obj -> index of the Blender object obj in the captured scene, or None``,
+    matched by ``session_uid`` (renames do not matter; a plain ``SceneArrays`` without
+    ``object_uids`` is matched by name)."""
+    uids = getattr(scene, "object_uids", None)
+    if uids is None:
+        by_name = {}
+        for index, name in enumerate(scene.object_names):
+            by_name.setdefault(name, index)
+        return lambda obj: by_name.get(obj.name)
+    by_uid = {}
+    for index, uid in enumerate(uids.tolist()):
+        if uid >= 0:
+            by_uid.setdefault(uid, index)
+    return lambda obj: by_uid.get(obj.session_uid)
+
+
+def captured_index(scene, obj):
+    """Index of the Blender object ``obj`` in the captured ``scene`` or None (:func:`captured_lookup`)."""
+    return captured_lookup(scene)(obj)
+
+
+def changed_since_capture(scene, index, obj):
+    """True when the mesh or the transform of ``obj`` (object ``index`` of ``scene``) changed
+    since the capture."""
+    fingerprints = getattr(scene, "object_fingerprints", None)
+    known = fingerprints[index] if fingerprints is not None else None
+    return bool(known) and known != object_fingerprint(obj)
+
+
+def current_names(scene, view_layer=None):
+    """The object names of ``scene`` as they are now: a renamed object's new name (objects that
+    no longer exist keep their captured name)."""
+    uids = getattr(scene, "object_uids", None)
+    if uids is None:
+        return list(scene.object_names)
+    objects = view_layer.objects if view_layer is not None else bpy.data.objects
+    by_uid = {obj.session_uid: obj.name for obj in objects}
+    return [by_uid.get(int(uid), name) for uid, name in zip(uids, scene.object_names)]
 
 
 # -- the store ----------------------------------------------------------------------------------------

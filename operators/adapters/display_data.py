@@ -23,6 +23,8 @@ The arrow objects and the add-on's materials are in :mod:`.display_objects`.
 import bpy
 import numpy as np
 
+from ...lmdp_addon.errors import SceneError
+
 MARK = "lmdp_generated"
 #: Point attributes the add-on writes: name -> data type.
 ATTRIBUTES = {"lmdp_z": 'FLOAT', "lmdp_z_color": 'FLOAT_COLOR', "lmdp_z_rgb": 'FLOAT_COLOR',
@@ -83,6 +85,11 @@ def to_local(obj, points):
 # -- point attributes ---------------------------------------------------------------------------------
 
 def owned_attributes(mesh):
+    """Names of the add-on's attributes on ``mesh``: those listed in ``lmdp_attributes``; on a
+    mesh the add-on began to write (``lmdp_previous_colors``) without finishing (no list, as an
+    interrupted write of an earlier version left it), every attribute of :data:`ATTRIBUTES`."""
+    if OWNED_KEY not in mesh and PREVIOUS_COLORS_KEY in mesh:
+        return {name for name in ATTRIBUTES if mesh.attributes.get(name) is not None}
     return set(mesh.get(OWNED_KEY, "").split(",")) - {""}
 
 
@@ -92,9 +99,28 @@ def foreign_attributes(mesh):
     return sorted(name for name in ATTRIBUTES if mesh.attributes.get(name) is not None and name not in owned)
 
 
+def check_point_values(mesh, values, owner):
+    """Raise ``SceneError`` naming ``owner`` unless ``values`` ({name: array or None}) fit the
+    points of ``mesh``, it is not in Edit Mode (where its attributes cannot be written) and no
+    attribute of the user's has one of their names."""
+    if mesh.is_editmode:
+        raise SceneError(f"{owner} is in Edit Mode: switch to Object Mode (Tab) and run it again")
+    foreign = [name for name in foreign_attributes(mesh) if values.get(name) is not None]
+    if foreign:
+        raise SceneError(f"{owner}: its mesh '{mesh.name}' has its own attribute {', '.join(foreign)}; "
+                         "rename it to let LMDP write its colours")
+    for name, data in values.items():
+        if data is not None and len(data) != len(mesh.vertices):
+            raise SceneError(f"{owner}: {len(data)} values of {name} for {len(mesh.vertices)} vertices "
+                             "(the mesh changed): run it again")
+
+
 def _set_attribute(mesh, name, values):
     data_type = ATTRIBUTES[name]
     attribute = mesh.attributes.new(name, data_type, 'POINT')
+    if attribute.name != name:  # Blender made the name unique: never own a ".001"
+        mesh.attributes.remove(attribute)
+        raise SceneError(f"Mesh '{mesh.name}' already has an attribute '{name}'")
     if data_type == 'FLOAT_COLOR':
         rgba = np.asarray(values, dtype=np.float32)
         if rgba.shape[1] == 3:
@@ -105,22 +131,34 @@ def _set_attribute(mesh, name, values):
     return attribute
 
 
-def write_point_attributes(mesh, values):
+def _set_attributes(mesh, values):
+    for name, data in values.items():
+        if data is not None:
+            _set_attribute(mesh, name, np.nan_to_num(np.asarray(data), nan=0.0, posinf=3.0e38, neginf=-3.0e38))
+
+
+def write_point_attributes(mesh, values, owner=None):
     """Replace the add-on's point attributes of ``mesh`` by ``values`` ({name: (V,) or (V, 3|4)}).
 
     Attributes of :data:`ATTRIBUTES` that the add-on wrote before and that are not in ``values``
     are removed (e.g. ``lmdp_z_rgb`` after switching to THESIS mode). Call
     :func:`foreign_attributes` first: user attributes of the same names must not be replaced.
-    ``lmdp_z_color`` becomes the active and render colour attribute.
+    ``lmdp_z_color`` becomes the active and render colour attribute. Every length is checked
+    before anything changes (:func:`check_point_values`, ``owner`` names the object), the names
+    are recorded as the add-on's before they are created, and a failure removes them again, so
+    no attribute is ever left half-written or unowned.
     """
+    check_point_values(mesh, values, owner or f"Mesh '{mesh.name}'")
     colors = mesh.color_attributes
     if PREVIOUS_COLORS_KEY not in mesh:
         mesh[PREVIOUS_COLORS_KEY] = f"{colors.active_color_name or ''}\n{colors.default_color_name or ''}"
     _remove_owned(mesh)
-    for name, data in values.items():
-        if data is not None:
-            _set_attribute(mesh, name, np.nan_to_num(np.asarray(data), nan=0.0, posinf=3.0e38, neginf=-3.0e38))
     mesh[OWNED_KEY] = ",".join(name for name, data in values.items() if data is not None)
+    try:
+        _set_attributes(mesh, values)
+    except Exception:
+        remove_point_attributes(mesh)
+        raise
     if COLOR_ATTRIBUTE in values:
         colors.active_color_name = COLOR_ATTRIBUTE
         colors.default_color_name = COLOR_ATTRIBUTE
@@ -276,9 +314,12 @@ def set_display_modifier(obj, level, local_points, triangles, values):
     """Add or update ``obj``'s "LMDP Display" modifier at ``level`` with a field object holding
     ``local_points (N, 3)`` (object space), ``triangles`` and point attributes ``values``."""
     mesh = mesh_from_triangles(FIELD_OBJECT_PREFIX + obj.name, local_points, triangles)
-    for name, data in values.items():
-        if data is not None:
-            _set_attribute(mesh, name, np.nan_to_num(np.asarray(data), nan=0.0, posinf=3.0e38, neginf=-3.0e38))
+    try:
+        check_point_values(mesh, values, f"The display field of {obj.name}")
+        _set_attributes(mesh, values)
+    except Exception:
+        bpy.data.meshes.remove(mesh)
+        raise
     modifier = display_modifier(obj)
     tree = field_node_group()
     if modifier is None:
@@ -335,7 +376,7 @@ def show_field(obj, fields, level, lattice):
     """Write ``fields`` (the vertex field, and the lattice field when ``lattice`` (points,
     normals, triangles) is given) on ``obj``: point attributes, the display flag and, with a
     lattice, the LMDP Display modifier at ``level`` (removed without). Returns the lattice nodes."""
-    write_point_attributes(obj.data, field_attributes(fields[0]))
+    write_point_attributes(obj.data, field_attributes(fields[0]), obj.name)
     obj[DISPLAY_FLAG] = 1.0
     if lattice is None:
         remove_display_modifier(obj)

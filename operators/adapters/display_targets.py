@@ -9,7 +9,9 @@ import numpy as np
 
 from ...lmdp_addon.display import vertex_field
 from ...lmdp_addon.display.colormap import ColorScale
-from ..common import selected_meshes
+from ...lmdp_addon.errors import SceneError
+from ..common import mode_holding_mesh, selected_meshes
+from ..session import captured_lookup, changed_since_capture
 from .display_data import foreign_attributes, longest_edge, world_vertices
 
 #: Largest number of display-lattice nodes per object (memory / update-time guard).
@@ -21,7 +23,7 @@ class DisplayRecord:
     """What Show Desirability did (the session's ``display`` stage; the panel's legend).
 
     objects  {name: {"vertices": V, "level": modifier level (0: none), "nodes": lattice nodes}}
-    weights  {name: (geometry key, [FieldWeights])}: the interpolation weights of the last run,
+    weights  {session_uid: (geometry key, [FieldWeights])}: the interpolation weights of the last run,
              reused while the states (``states_id``) and the mesh are the same, so that switching
              the quantity or the colour map skips the neighbour search (a new solution clears the
              record, and with it the weights)
@@ -47,17 +49,22 @@ class DisplayRecord:
 
 
 def _selected_mesh_objects(context):
-    """Selected meshes, including selected ones that are hidden (so they can be reported)."""
-    meshes = {obj.name: obj for obj in selected_meshes(context)}  # raises for an empty selection
+    """``(meshes, skipped)``: the selected meshes, including selected ones that are hidden (so
+    they can be reported), and messages naming those without faces."""
+    selection = selected_meshes(context)  # raises for an empty selection
+    meshes = {obj.name: obj for obj in selection}
+    skipped = [f"{obj.name}: {reason} (it carries no states)" for obj, reason in selection.skipped]
+    left_out = {obj.name for obj, _ in selection.skipped}
     view_layer = context.view_layer
     for obj in view_layer.objects:
-        if obj.type == 'MESH' and obj.select_get(view_layer=view_layer):
+        if obj.type == 'MESH' and obj.select_get(view_layer=view_layer) and obj.name not in left_out:
             meshes.setdefault(obj.name, obj)
-    return [meshes[name] for name in sorted(meshes)]
+    return [meshes[name] for name in sorted(meshes)], skipped
 
 
-def _skip_reason(context, obj, scene, carriers, mesh_owner):
-    """Why Show Desirability cannot write ``obj`` (a message naming it), or None."""
+def _skip_reason(context, obj, scene, index, carriers, mesh_owner):
+    """Why Show Desirability cannot write ``obj`` (object ``index`` of the captured ``scene``,
+    None if it is not part of it): a message naming it, or None."""
     mesh = obj.data
     if obj.library is not None or mesh.library is not None or not mesh.is_editable:
         source = (obj.library or mesh.library)
@@ -65,10 +72,17 @@ def _skip_reason(context, obj, scene, carriers, mesh_owner):
         return f"{obj.name}: linked{where} and not editable (make it local to show z on it)"
     if not obj.visible_get(view_layer=context.view_layer):
         return f"{obj.name}: hidden (unhide it to show z on it)"
+    mode = mode_holding_mesh(obj)
+    if mode is not None:
+        tab = ", Tab," if mode == "Edit Mode" else ""
+        return f"{obj.name}: in {mode} (switch to Object Mode{tab} to show z on it)"
     if len(mesh.vertices) == 0:
         return f"{obj.name}: has no vertices"
-    if obj.name not in scene.object_names or carriers[scene.object_names.index(obj.name)] == 0:
+    if index is None or carriers[index] == 0:
         return f"{obj.name}: carries no states (select it and Sample again)"
+    if changed_since_capture(scene, index, obj):
+        return (f"{obj.name}: its mesh or transform changed since the states were sampled "
+                "(run Sample again, or Run All)")
     if foreign_attributes(mesh):
         names = ", ".join(foreign_attributes(mesh))
         return (f"{obj.name}: its mesh '{mesh.name}' has its own attribute {names}; "
@@ -80,26 +94,45 @@ def _skip_reason(context, obj, scene, carriers, mesh_owner):
 
 def display_targets(context, scene, states):
     """``(targets, skipped)``: the selected meshes Show Desirability can write, as
-    ``[(object, object index in scene)]`` (``scene``: the session's SceneArrays), and one
-    message per skipped mesh naming it."""
-    targets, skipped, mesh_owner = [], [], {}
+    ``[(object, object index in scene)]`` (``scene``: the session's captured scene; objects are
+    matched by ``session_uid``, not by name), and one message per skipped mesh naming it."""
+    targets, mesh_owner = [], {}
     carriers = np.bincount(states.point_object, minlength=len(scene.object_names))
-    for obj in _selected_mesh_objects(context):
-        reason = _skip_reason(context, obj, scene, carriers, mesh_owner)
+    meshes, skipped = _selected_mesh_objects(context)
+    captured_index = captured_lookup(scene)
+    for obj in meshes:
+        index = captured_index(obj)
+        reason = _skip_reason(context, obj, scene, index, carriers, mesh_owner)
         if reason is not None:
             skipped.append(reason)
         else:
             mesh_owner[obj.data.name] = obj.name
-            targets.append((obj, scene.object_names.index(obj.name)))
+            targets.append((obj, index))
     # Hiding an object deselects it: name the hidden meshes that carry states, so their
     # (possibly stale) colours are not silently left behind.
-    chosen = {obj.name for obj, _ in targets} | {m.split(":")[0] for m in skipped}
-    for index, name in enumerate(scene.object_names):
-        obj = bpy.data.objects.get(name)
-        if carriers[index] and name not in chosen and obj is not None and obj.type == 'MESH' \
-                and name in context.view_layer.objects and not obj.visible_get(view_layer=context.view_layer):
-            skipped.append(f"{name}: hidden (it carries states; unhide and select it to show z on it)")
+    chosen = {obj.session_uid for obj in meshes}
+    for obj in context.view_layer.objects:
+        index = captured_index(obj) if obj.type == 'MESH' else None
+        if index is not None and carriers[index] and obj.session_uid not in chosen \
+                and not obj.visible_get(view_layer=context.view_layer):
+            skipped.append(f"{obj.name}: hidden (it carries states; unhide and select it to show z on it)")
     return targets, skipped
+
+
+def check_targets(inputs):
+    """Raise ``SceneError`` (before anything is written) when an object read by
+    :func:`read_targets` is gone, renamed into another, in Edit Mode or changed since."""
+    by_uid = {obj.session_uid: obj for obj in bpy.data.objects}
+    for target in inputs:
+        obj = by_uid.get(target["uid"])
+        if obj is None:
+            raise SceneError(f"{target['name']} was deleted while Show Desirability ran: nothing was "
+                             "written; run Show again")
+        if mode_holding_mesh(obj) or len(obj.data.vertices) != len(target["points"]) or \
+                world_vertices(obj)[0].tobytes() != target["points"].tobytes():
+            raise SceneError(f"{obj.name} changed (or entered Edit / Sculpt Mode) while Show Desirability ran: "
+                             "nothing was written; run Show again")
+        target["object"] = obj
 
 
 def display_lattice(scene, geometry, obj_index, spacing, max_level):
@@ -129,7 +162,7 @@ def geometry_key(points, normals, lattice):
 
 
 def read_targets(targets, scene, states, props, previous):
-    """Per target, what the worker needs: ``{"name", "index", "points", "normals", "level",
+    """Per target, what the worker needs: ``{"name", "uid", "index", "points", "normals", "level",
     "lattice", "spacing", "edge", "key", "weights"}``. ``props``: ``scene.lmdp``; ``previous``:
     the session's last DisplayRecord, whose weights are reused when neither the mesh nor the
     states changed."""
@@ -145,8 +178,8 @@ def read_targets(targets, scene, states, props, previous):
         lattice = display_lattice(scene, geometry, index, object_spacing, props.display_max_level) \
             if props.display_subdivide and level > 0 else None
         key = geometry_key(points, normals, lattice)
-        cached_key, cached_weights = cache.get(obj.name, (None, None))
-        inputs.append({"name": obj.name, "index": index, "points": points, "normals": normals,
+        cached_key, cached_weights = cache.get(obj.session_uid, (None, None))
+        inputs.append({"name": obj.name, "uid": obj.session_uid, "index": index, "points": points, "normals": normals,
                        "level": level, "lattice": lattice, "spacing": object_spacing, "edge": edge,
                        "key": key, "weights": cached_weights if cached_key == key else None})
     return inputs

@@ -15,15 +15,25 @@ Conventions follow Cycles as measured in docs/cycles_conventions.md:
   P c / π when off), emitted towards the light's -Z only. Disk / ellipse: a rectangle of the
   same area, with a warning. Cycles' lights do not occlude; the quad here does.
 * World: Background Color x Strength of the shader connected to the World Output.
+* Objects in Edit Mode are captured as the user sees them (their edit mesh, modifiers applied).
+
+The result is a :class:`CapturedScene`: a ``SceneArrays`` that also knows which Blender object
+each of its objects is (``session_uid``, which survives renames) and a fingerprint of the mesh
+and transform of each object that carries states, so that results are never matched to
+objects by name (:func:`..session.captured_index`, :func:`..session.changed_since_capture`).
 
 Whatever is approximated (textures by their mean, Mix / Add shaders by weighted sums, non-diffuse
 BSDFs as diffuse, unsupported lights skipped) is reported in ``SceneArrays.warnings`` with the
 object, material and node names.
 """
+import hashlib
+from dataclasses import dataclass
+
 import bpy
 import numpy as np
 
 from ...lmdp_addon.scene_arrays import SceneArrays
+from ..common import mode_holding_mesh, skipped_mesh_messages
 
 #: Cycles' default surface (a polygon without material): Diffuse BSDF, colour 0.8.
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
@@ -33,6 +43,40 @@ GEOMETRY_TYPES = {'MESH', 'CURVE', 'CURVES', 'SURFACE', 'META', 'FONT'}
 _BLACK = np.zeros(3)
 #: Before Blender 5.0 materials and worlds could switch their node trees off (``use_nodes``).
 _NODES_OPTIONAL = bpy.app.version < (5, 0, 0)
+
+
+@dataclass
+class CapturedScene(SceneArrays):
+    """A ``SceneArrays`` captured from Blender, with the identity of its objects.
+
+    object_uids          (O,) int64 ``session_uid`` of each object's Blender object (-1 for
+                         instances, which have no object of their own)
+    object_fingerprints  O x (str or None): :func:`object_fingerprint` of the mesh objects that
+                         carry states ("" for other types), None for the others
+    """
+
+    object_uids: np.ndarray = None
+    object_fingerprints: list = None
+
+
+def object_fingerprint(obj):
+    """Digest of what the states on the mesh object ``obj`` were sampled on: its mesh's vertex
+    positions and faces and its world matrix (changes of modifier settings are not seen). An
+    object in Edit Mode is first updated from its edit mesh (``update_from_editmode``, which
+    changes nothing the user sees)."""
+    mesh = obj.data
+    if mesh.is_editmode:
+        obj.update_from_editmode()
+    co = np.empty(3 * len(mesh.vertices), dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    corners = np.empty(len(mesh.loops), dtype=np.int32)
+    mesh.loops.foreach_get("vertex_index", corners)
+    starts = np.empty(len(mesh.polygons), dtype=np.int32)
+    mesh.polygons.foreach_get("loop_start", starts)
+    digest = hashlib.blake2b(digest_size=16)
+    for array in (co, corners, starts, np.array(obj.matrix_world, dtype=np.float32)):
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def _srgb_to_linear(c):
@@ -296,13 +340,18 @@ class _SceneBuilder:
 
     def __init__(self):
         self.names, self.carries, self.has_uv = [], [], []
+        self.uids, self.fingerprints = [], []
         self.parts = []  # (vertices, triangles, albedo, emission, two_sided, uv) per object
         self.offset = 0
 
-    def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv):
+    def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv,
+            uid=-1, fingerprint=None):
         """One object: world vertices (V, 3), triangles (T, 3) into them, per-triangle albedo /
-        emission (T, 3) and two-sidedness (T,), UVs (T, 3, 2) or None."""
+        emission (T, 3) and two-sidedness (T,), UVs (T, 3, 2) or None; the ``session_uid`` and
+        :func:`object_fingerprint` of its Blender object (see :class:`CapturedScene`)."""
         self.names.append(name)
+        self.uids.append(uid)
+        self.fingerprints.append(fingerprint)
         self.carries.append(carries_states)
         self.has_uv.append(uv is not None)
         self.parts.append((world, tris + self.offset, np.full(len(tris), len(self.names) - 1, dtype=np.int32),
@@ -321,7 +370,7 @@ class _SceneBuilder:
             albedo = emission = np.zeros((0, 3))
             two_sided = np.zeros(0, dtype=bool)
             triangle_uv = np.zeros((0, 3, 2), dtype=np.float32)
-        return SceneArrays(
+        return CapturedScene(
             vertices=vertices,
             triangles=triangles,
             triangle_object=triangle_object,
@@ -334,6 +383,8 @@ class _SceneBuilder:
             triangle_uv=triangle_uv,
             object_has_uv=np.array(self.has_uv, dtype=bool),
             warnings=warnings,
+            object_uids=np.array(self.uids, dtype=np.int64),
+            object_fingerprints=list(self.fingerprints),
         )
 
 
@@ -354,18 +405,24 @@ def _add_light(builder, name, inst, warnings, skipped_lights):
                 np.zeros(2, dtype=bool), None)
 
 
-def _add_mesh(builder, name, inst, carries_states, reader, warnings):
-    """The evaluated mesh of ``inst`` in world space, with its materials and render UV map."""
+def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
+    """The evaluated mesh of ``inst`` in world space, with its materials and render UV map;
+    returns False when it has no faces. ``fingerprint``: the object's :func:`object_fingerprint`
+    when it carries states, else None. Objects in Edit Mode are read from their edit mesh
+    (``to_mesh``): the evaluated mesh of an object in Edit Mode holds no faces of its own."""
+    carries_states = fingerprint is not None
     obj = inst.object
-    own_mesh = obj.type != 'MESH'
+    original = obj.original
+    editing = original.type == 'MESH' and original.data.is_editmode
+    own_mesh = obj.type != 'MESH' or editing
     mesh = obj.to_mesh() if own_mesh else obj.data
     try:
         if mesh is None or len(mesh.polygons) == 0:
-            return
+            return False
         matrix = inst.matrix_world
         world, tris, loops, poly = _mesh_arrays(mesh, matrix)
         if len(tris) == 0:
-            return
+            return False
         if np.linalg.det(np.asarray(matrix, dtype=np.float64)[:3, :3]) < 0:
             # Mirrored objects: Cycles keeps their normals as displayed, so flip the winding.
             tris = tris[:, [0, 2, 1]]
@@ -381,30 +438,37 @@ def _add_mesh(builder, name, inst, carries_states, reader, warnings):
         albedo_table = np.array([a for a, _ in per_slot])
         emission_table = np.array([e for _, e in per_slot])
         builder.add(name, carries_states, world, tris, albedo_table[slot_of_tri],
-                    emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv)
+                    emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv,
+                    -1 if inst.is_instance else original.session_uid, None if inst.is_instance else fingerprint)
+        return True
     finally:
         if own_mesh:
             obj.to_mesh_clear()
 
 
 def extract_scene(context, selected_objects, depsgraph=None):
-    """:class:`SceneArrays` of every visible mesh and area light in ``context``'s view layer.
+    """:class:`CapturedScene` of every visible mesh and area light in ``context``'s view layer.
 
-    ``selected_objects``: the objects whose meshes carry LMDP states (originals or evaluated);
-    every other visible mesh only occludes and reflects. ``depsgraph`` defaults to
+    ``selected_objects``: the objects whose meshes carry LMDP states (originals or evaluated,
+    matched by object, not by name); every other visible mesh only occludes and reflects. The
+    meshes that :func:`..common.selected_meshes` left out (its ``skipped``) and selected
+    objects that turn out to have no faces are named in the warnings. ``depsgraph`` defaults to
     ``context.evaluated_depsgraph_get()``. Hidden objects (eye, monitor or camera icon off, or
     not visible in the view layer) are ignored. Object names of instances are
     "<instancer>/<object>#<n>".
     """
+    selected = {o.session_uid: o for o in (getattr(o, "original", o) for o in selected_objects or ())}
+    # Before the depsgraph is evaluated: fingerprints update objects in Edit Mode from their edit mesh.
+    fingerprints = {uid: object_fingerprint(o) if o.type == 'MESH' else "" for uid, o in selected.items()}
     if depsgraph is None:
         depsgraph = context.evaluated_depsgraph_get()
     view_layer = depsgraph.view_layer
-    selected = {getattr(o, "original", o).name for o in (selected_objects or ())}
-    warnings = []
+    warnings = skipped_mesh_messages(selected_objects)
     reader = _MaterialReader(warnings)
     builder = _SceneBuilder()
     instance_count = {}
     skipped_lights = []
+    captured = set()
     for inst in depsgraph.object_instances:
         obj = inst.object
         top = (inst.parent if inst.is_instance and inst.parent is not None else obj).original
@@ -419,7 +483,17 @@ def extract_scene(context, selected_objects, depsgraph=None):
         if obj.type == 'LIGHT':
             _add_light(builder, name, inst, warnings, skipped_lights)
         elif obj.type in GEOMETRY_TYPES:
-            _add_mesh(builder, name, inst, top.name in selected, reader, warnings)
+            if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings):
+                captured.add(top.session_uid)
+            if not inst.is_instance and mode_holding_mesh(obj.original) == "Sculpt Mode with Dynamic Topology":
+                warnings.append(f"Object '{name}' is in Sculpt Mode with Dynamic Topology, whose strokes "
+                                "reach its mesh only when you leave it: LMDP captured the mesh as it was "
+                                "before; switch to Object Mode to capture them")
+    empty = sorted(obj.name for uid, obj in selected.items()
+                   if uid not in captured and obj.type in GEOMETRY_TYPES and not _is_hidden(obj, view_layer))
+    if empty:
+        warnings.append(f"The selected {', '.join(repr(n) for n in empty)} produced no faces (after "
+                        "modifiers): they carry no LMDP states")
     if skipped_lights:
         warnings.append("Only area lights are modelled; skipped " + ", ".join(skipped_lights)
                         + ": use an area light or an emissive mesh instead")

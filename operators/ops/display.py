@@ -21,7 +21,7 @@ from ...lmdp_addon.errors import SceneError
 from ...lmdp_addon.model.solvers import state_residuals
 from ..adapters.display_data import show_field
 from ..adapters.display_objects import clear_all
-from ..adapters.display_targets import DisplayRecord, display_targets, read_targets
+from ..adapters.display_targets import DisplayRecord, check_targets, display_targets, read_targets
 from ..adapters.viewport import set_render_override, shade_viewports, tag_redraw
 from ..common import report_error, selected_meshes
 from ..jobs import EngineJob, ready
@@ -101,9 +101,10 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
         inputs = self._inputs
         record = DisplayRecord(inputs["quantity"], inputs["colormap"], sq.scale, skipped=list(inputs["skipped"]),
                                states_id=id(inputs["states"]), seconds=self.compute_seconds)
+        check_targets(inputs["targets"])  # every object as read, before anything is written
         for target, (fields, weights) in zip(inputs["targets"], results):
-            obj = bpy.data.objects[target["name"]]
-            record.weights[obj.name] = (target["key"], weights)
+            obj = target["object"]
+            record.weights[obj.session_uid] = (target["key"], weights)
             nodes = show_field(obj, fields, target["level"], target["lattice"])
             if target["lattice"] is None and target["level"] > 0:
                 record.coarse.append(obj.name)

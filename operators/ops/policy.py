@@ -18,9 +18,9 @@ from ...lmdp_addon.errors import SceneError
 from ...lmdp_addon.model.policy import optimal_policy, stratum_policy
 from ..adapters.display_objects import set_generated_mesh_object
 from ..adapters.viewport import tag_redraw
-from ..common import selected_meshes
+from ..common import selected_meshes, skipped_mesh_messages
 from ..jobs import EngineJob, ready
-from ..session import session_for
+from ..session import captured_index, current_names, session_for
 
 
 def arrow_mesh_arrays(arrows, scale, extra=None):
@@ -56,18 +56,19 @@ def next_state_markers(probe, states):
             np.concatenate([probe.target_probability[which], probe.target_probability[lwhich]]))
 
 
-def policy_candidates(context, names, states, subset, meshes):
+def policy_candidates(context, scene, states, subset, meshes):
     """The states that may get arrows: those on the active object (``ACTIVE_OBJECT``) or on the
-    selected ``meshes``; raises ``SceneError`` naming the problem when there are none."""
+    selected ``meshes`` (matched to the captured ``scene`` by object, not by name); raises
+    ``SceneError`` naming the problem when there are none."""
     if subset == 'ACTIVE_OBJECT':
         active = context.view_layer.objects.active
-        if active is None or active.name not in names or \
-                not np.any(states.point_object == names.index(active.name)):
+        index = captured_index(scene, active) if active is not None else None
+        if index is None or not np.any(states.point_object == index):
             what = f"the active object '{active.name}' carries" if active is not None else "there is no active object with"
             raise SceneError(f"Show Policy (Active Object): {what} no states; make a sampled mesh "
                              "active or choose Most Informative")
-        return np.flatnonzero(states.point_object == names.index(active.name))
-    chosen = [names.index(o.name) for o in meshes if o.name in names]
+        return np.flatnonzero(states.point_object == index)
+    chosen = [index for index in (captured_index(scene, o) for o in meshes) if index is not None]
     candidates = np.flatnonzero(np.isin(states.point_object, chosen))
     if candidates.size == 0:
         raise SceneError("Show Policy: none of the selected meshes carries states; select "
@@ -101,7 +102,8 @@ class LMDP_OT_show_policy(EngineJob, bpy.types.Operator):
         solution = session.require("solution")
         lmdp = session.result
         props = context.scene.lmdp
-        candidates = policy_candidates(context, lmdp.scene.object_names, lmdp.states, props.policy_subset, meshes)
+        candidates = policy_candidates(context, lmdp.scene, lmdp.states, props.policy_subset, meshes)
+        self._skipped = skipped_mesh_messages(meshes)
         previous = session.get("policy")
         return {"states": lmdp.states, "dynamics": lmdp.dynamics, "solution": solution, "candidates": candidates,
                 "subset": props.policy_subset, "max_points": props.policy_max_points,
@@ -118,6 +120,8 @@ class LMDP_OT_show_policy(EngineJob, bpy.types.Operator):
 
     def apply(self, context, result):
         view, mesh = result
+        for message in self._skipped:
+            self.report({'WARNING'}, message)
         session_for(context.scene).store("policy", view, seconds=self.compute_seconds)
         if mesh is not None:
             set_generated_mesh_object(context, "policy", "LMDP Policy", *mesh)
@@ -198,7 +202,7 @@ class LMDP_OT_probe_policy(EngineJob, bpy.types.Operator):
         self._inputs = {"states": lmdp.states, "dynamics": lmdp.dynamics, "lmdp": lmdp.lmdp,
                         "solution": solution, "location": location, "scale": scale,
                         "longest": self.arrow_scale <= 0, "next_states": self.next_states,
-                        "as_mesh": self.as_mesh, "names": lmdp.scene.object_names,
+                        "as_mesh": self.as_mesh, "names": current_names(lmdp.scene),
                         "view": session.get("policy")}
         return self._inputs
 

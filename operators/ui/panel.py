@@ -10,7 +10,8 @@ swatch icons are previews, not data).
 """
 import bpy
 
-from ..common import operator_available
+from ...lmdp_addon.errors import LMDPError
+from ..common import MeshSelection, operator_available, selected_meshes
 from ..jobs import running_job
 from ..session import format_bytes, format_seconds, peek
 
@@ -144,8 +145,12 @@ class LMDP_PT_main(bpy.types.Panel):
             row.prop(props, "run_all_bake", toggle=True)
 
         box = layout.box()
-        meshes = [obj.name for obj in context.selected_objects if obj.type == 'MESH']
-        box.label(text=f"Selected meshes: {len(meshes)}", icon='MESH_DATA')
+        try:
+            selection = selected_meshes(context, evaluate=False)
+        except LMDPError:
+            selection = MeshSelection([])
+        faceless = f" ({len(selection.skipped)} without faces, skipped)" if selection.skipped else ""
+        box.label(text=f"Selected meshes: {len(selection)}{faceless}", icon='MESH_DATA')
         session = peek(context.scene)
         if session is None or not session.results:
             box.label(text="No results yet: select meshes and Sample")
