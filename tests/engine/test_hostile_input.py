@@ -54,3 +54,39 @@ def test_iterative_with_enough_iterations_still_converges():
 def test_max_iterations_below_one_is_refused_naming_the_setting(solver):
     with pytest.raises(SceneError, match="Max Iterations"):
         solve_desirability(random_lmdp(), solver, max_iterations=0)
+
+
+# ---- class 17: the legend of a z that is 0 everywhere ----------------------------------------------
+
+def unlit_solution(channels):
+    """A solved problem whose only terminal with light is unreachable: z = 0 on every state."""
+    lmdp = random_lmdp(m=50, channels=channels)
+    lmdp.z_terminal[:] = 0.0
+    return solve_desirability(lmdp, "ITERATIVE")
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize("quantity", ["Z", "COST_TO_GO"])
+def test_a_z_that_is_0_everywhere_gets_an_empty_legend_and_the_missing_colour(channels, quantity):
+    from lmdp_addon.display.colormap import MISSING_SRGB, srgb_to_linear
+    from lmdp_addon.display.vertex_field import FieldWeights, state_quantity, vertex_field
+    sol = unlit_solution(channels)
+    assert not np.any(sol.z > 0)
+    sq = state_quantity(sol, quantity)
+    text = sq.scale.describe()
+    assert ("z is 0" if quantity == "Z" else "J is +inf") in text and "no light reaches" in text, text
+    assert "decades" not in text and ".." not in text
+    assert sq.scale.empty and sq.scale.decades == 0.0
+    m = len(sol.y)
+    weights = FieldWeights(sp.identity(m, format="csr", dtype=np.float32), np.arange(m), np.zeros(m, bool))
+    field = vertex_field(weights, sq)
+    assert np.all(np.isnan(field.position))
+    assert np.allclose(field.color[:, :3], srgb_to_linear(MISSING_SRGB), atol=1e-6)
+    # The legend's values say what the data is: z = 0, J = +inf.
+    assert set(sq.scale.tick_labels(5)) == ({"0"} if quantity == "Z" else {"inf"})
+
+
+def test_a_partly_lit_z_keeps_its_range():
+    from lmdp_addon.display.colormap import log_scale_from_log10
+    scale = log_scale_from_log10(np.array([-np.inf, -2.0, 0.0]), "z", 0.0, 100.0, empty_note="never")
+    assert not scale.empty and scale.describe() == "z: 0.01 .. 1 (log, 2.0 decades)"
