@@ -50,9 +50,11 @@ def object_index(scene, name):
 def object_texels(scene, index, resolution):
     """Texels of object ``index`` at ``resolution``: ``(TexelSet, triangles (T_o,))``.
 
-    ``triangles`` maps the TexelSet's local triangle indices to the scene's triangles.
+    ``triangles`` maps the TexelSet's local triangle indices to the scene's triangles. Triangles
+    left out of the scene for non-finite or huge corners (``SceneArrays.usable_triangles``, which
+    warns about them) get no texels.
     """
-    tris = np.flatnonzero(scene.triangle_object == index)
+    tris = np.flatnonzero((scene.triangle_object == index) & scene.usable_triangles())
     normals, _ = scene.triangle_geometry()
     ts = rasterize_texels(scene.triangle_uv[tris], scene.corners()[tris], normals[tris], resolution)
     return ts, tris

@@ -113,8 +113,8 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     if guide is not None and n_tex:
         states = guide.states_at(ts.position, ts.normal, np.full(n_tex, index))
     progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
-    acc, acc2, stats = _trace_batches(tracer, ts, states, B, N // B, int(settings.seed), object_number,
-                                      name, progress, threads)
+    acc, acc2, stats = _trace_batches(tracer, ts, tris[ts.triangle], states, B, N // B, int(settings.seed),
+                                      object_number, name, progress, threads)
     value = acc / B
     if B > 1:
         stderr = np.sqrt(np.maximum(acc2 - B * value * value, 0.0) / (B - 1) / B)
@@ -131,9 +131,10 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
                       stats=stats, seconds=time.perf_counter() - t0)
 
 
-def _trace_batches(tracer, ts, states, B, per_batch, seed, object_number, name, progress, threads):
+def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_number, name, progress, threads):
     """``(Σ_b mean_b, Σ_b mean_b², TraceStats)`` over the B batches of ``per_batch`` paths of
-    every texel of ``ts`` (``states``: each texel's nearest state, -1: none), traced as the
+    every texel of ``ts`` (``triangles``: each texel's scene triangle, for its rays' offset;
+    ``states``: each texel's nearest state, -1: none), traced as the
     :func:`work_units` on ``threads`` threads. Running sums keep memory O(texels), not
     O(batches x texels); they are formed in unit order, so bakes are bit-identical whatever
     order the threads finish in."""
@@ -156,7 +157,7 @@ def _trace_batches(tracer, ts, states, B, per_batch, seed, object_number, name, 
                           u_mix.reshape(k)))
         position, normal, u, u_mix = (np.concatenate(p) if group > 1 else p[0] for p in zip(*parts))
         values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
-                                  u, u_mix, rng)
+                                  u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group))
         return unit_id, values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64), st
 
     total = len(units)

@@ -8,9 +8,14 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from lmdp_addon import demo_geometry as scenes
+from lmdp_addon.bake import driver
 from lmdp_addon.errors import SceneError
+from lmdp_addon.model import pipeline
 from lmdp_addon.model.costs import FirstExitLMDP
 from lmdp_addon.model.solvers import solve_desirability
+from lmdp_addon.raycast import RayCaster
+from lmdp_addon.settings import Settings
 
 
 def random_lmdp(m=400, seed=3, channels=1):
@@ -90,3 +95,118 @@ def test_a_partly_lit_z_keeps_its_range():
     from lmdp_addon.display.colormap import log_scale_from_log10
     scale = log_scale_from_log10(np.array([-np.inf, -2.0, 0.0]), "z", 0.0, 100.0, empty_note="never")
     assert not scale.empty and scale.describe() == "z: 0.01 .. 1 (log, 2.0 decades)"
+
+
+# ---- class 1: nothing far away changes the bake of a room ------------------------------------------
+
+CORNELL_STATES = scenes.state_part_names("CORNELL_BOX")
+
+
+def stray_quad(name, far_corner):
+    """A quad behind the Cornell box's back wall (out of sight) with one corner at ``far_corner``:
+    one of its triangles reaches it, the other stays near the box."""
+    corners = np.array([(-1.0, 5.0, 0.0), far_corner, (1.0, 6.0, 0.0), (-1.0, 6.0, 0.0)])
+    uv = np.array([[(0.1, 0.1), (0.9, 0.1), (0.9, 0.9), (0.1, 0.9)]], np.float32)
+    return scenes.Part(name, corners, [[0, 1, 2, 3]], uv, albedo=(0.5, 0.5, 0.5))
+
+
+def ground_plane(half_width, z=-0.01, albedo=(0.0, 0.0, 0.0)):
+    """A square ground plane under the box, facing up; black, so no light it reflects could
+    change the room (only its size can)."""
+    e = half_width
+    corners = [(-e, -e, z), (e, -e, z), (e, e, z), (-e, e, z)]
+    return scenes._quad_part("Ground", corners, albedo)
+
+
+FAR_AWAY = {
+    "inf_vertex": lambda: stray_quad("Stray", (np.inf, 6.0, 0.0)),
+    "nan_vertex": lambda: stray_quad("Stray", (1.0, np.nan, 0.0)),
+    "1e30_vertex": lambda: stray_quad("Stray", (1e30, 6.0, 0.0)),
+    "1e11_m_vertex": lambda: stray_quad("Stray", (1e11, 6.0, 0.0)),
+    "100_km_ground_plane": lambda: ground_plane(5e4),
+}
+
+
+def cornell_with(*extra):
+    """The Cornell box (its own parts carry the states) and ``extra`` unselected parts."""
+    parts = scenes.scene_parts("CORNELL_BOX") + list(extra)
+    return scenes.parts_to_scene_arrays(parts, CORNELL_STATES)
+
+
+@pytest.fixture(scope="module")
+def cornell_floor_bake():
+    scene = cornell_with()
+    return driver.bake(scene, ["Floor"], small_bake()).objects[0]
+
+
+def small_bake(**kw):
+    return Settings(**{**dict(bake_mode="UNGUIDED", bake_resolution=16, bake_samples=8, bake_margin=0,
+                              max_bounces=4), **kw})
+
+
+@pytest.mark.parametrize("case", sorted(FAR_AWAY))
+def test_far_away_or_broken_geometry_does_not_change_the_bake_of_a_room(case, cornell_floor_bake):
+    scene = cornell_with(FAR_AWAY[case]())
+    floor = driver.bake(scene, ["Floor"], small_bake()).objects[0]
+    reference = cornell_floor_bake.value
+    assert floor.value.mean() > 0.5 * reference.mean()
+    # The far geometry is out of the box's sight: the same paths, the same numbers.
+    np.testing.assert_allclose(floor.value, reference, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["inf_vertex", "nan_vertex", "1e30_vertex"])
+def test_broken_triangles_are_left_out_and_named(case):
+    scene = cornell_with(FAR_AWAY[case]())
+    stray = scene.object_names.index("Stray")
+    usable = scene.usable_triangles()[scene.triangle_object == stray]
+    assert usable.tolist() == [False, True]                  # (a, b, c) reaches the bad corner b
+    assert any("'Stray'" in w and "1 triangle " in w and "left out" in w for w in scene.warnings), scene.warnings
+    assert scene.bounding_diagonal() < 10.0                  # the scene bounds ignore it
+    caster = RayCaster(scene)
+    assert len(caster.triangle_ids) == scene.n_triangles - 1
+
+
+def test_ray_offsets_follow_the_coordinates_where_rays_start():
+    plain, far = RayCaster(cornell_with()), RayCaster(cornell_with(ground_plane(5e4)))
+    room = np.arange(plain.scene.n_triangles)
+    np.testing.assert_array_equal(far.offset(room), plain.offset(room))
+    assert np.all(plain.offset(room) <= 1e-5) and np.all(plain.offset(room) >= 1e-6)
+    ground = np.flatnonzero(far.scene.triangle_object == far.scene.object_names.index("Ground"))
+    np.testing.assert_allclose(far.offset(ground), 1e-5 * 5e4)
+
+
+@pytest.mark.parametrize("case", ["1e30_vertex", "100_km_ground_plane"])
+def test_far_away_geometry_does_not_change_the_solved_states_of_a_room(case):
+    settings = Settings(point_count=256, rays_per_stratum=2, light_samples=8)
+    plain = pipeline.run_all(cornell_with(), settings)
+    far = pipeline.run_all(cornell_with(FAR_AWAY[case]()), settings)
+    np.testing.assert_array_equal(far.states.points, plain.states.points)
+    np.testing.assert_allclose(far.solution.z, plain.solution.z, rtol=1e-6, atol=1e-12)
+
+
+def with_extra_triangle(scene, object_name, corners, uv):
+    """``scene`` with one more triangle on ``object_name`` (new vertices ``corners (3, 3)``)."""
+    from lmdp_addon.scene_arrays import SceneArrays
+    o = scene.object_names.index(object_name)
+    V = len(scene.vertices)
+    return SceneArrays(
+        vertices=np.vstack([scene.vertices, corners]),
+        triangles=np.vstack([scene.triangles, [[V, V + 1, V + 2]]]),
+        triangle_object=np.append(scene.triangle_object, o),
+        triangle_albedo=np.vstack([scene.triangle_albedo, scene.triangle_albedo[scene.triangle_object == o][:1]]),
+        triangle_emission=np.vstack([scene.triangle_emission, np.zeros((1, 3))]),
+        object_names=scene.object_names, object_carries_states=scene.object_carries_states,
+        world_radiance=scene.world_radiance,
+        triangle_emission_two_sided=np.append(scene.triangle_emission_two_sided, True),
+        triangle_uv=np.vstack([scene.triangle_uv, np.asarray(uv, np.float32)[None]]),
+        object_has_uv=scene.object_has_uv)
+
+
+@pytest.mark.parametrize("bad", [np.inf, np.nan, 1e30])
+def test_a_baked_object_with_a_broken_triangle_bakes_the_rest_and_says_so(bad, cornell_floor_bake):
+    scene = with_extra_triangle(cornell_with(), "Floor", [(0.5, -0.5, 0.0), (bad, 0.0, 0.0), (0.5, 0.5, 0.0)],
+                                [(0.0, 0.0), (bad, 0.5), (0.0, 1.0)])
+    assert any("'Floor': 1 triangle " in w for w in scene.warnings), scene.warnings
+    floor = driver.bake(scene, ["Floor"], small_bake()).objects[0]
+    np.testing.assert_array_equal(floor.texels.row, cornell_floor_bake.texels.row)
+    np.testing.assert_allclose(floor.value, cornell_floor_bake.value, rtol=1e-4, atol=1e-6)
