@@ -18,6 +18,10 @@ from .texels import rasterize_texels
 #: about 120 B each (positions, normals, barycentrics, differentials), so at most ~120 MiB held
 #: between the check and the bake; objects beyond it are rasterised again when baked.
 TEXEL_CACHE_LIMIT = 1 << 20
+#: Blender stores UVs as 32-bit floats: a coordinate beyond 2^24 texels of the image
+#: (``2**24 / R`` in UV units) cannot be placed within a texel, and only corrupt or
+#: world-scale UV maps reach it.
+UV_TEXEL_LIMIT = float(1 << 24)
 
 
 @dataclass
@@ -73,6 +77,17 @@ def uv_overlaps(scene, index, resolution, texels=None):
     return count, example
 
 
+def bad_uv_faces(scene, index, resolution):
+    """(k,) scene triangles of object ``index`` whose UVs are non-finite or beyond
+    ``UV_TEXEL_LIMIT / resolution`` in magnitude (:data:`UV_TEXEL_LIMIT`), among the triangles
+    that get texels (``object_texels``: the scene's usable ones)."""
+    tris = np.flatnonzero((scene.triangle_object == index) & scene.usable_triangles())
+    uv = scene.triangle_uv[tris].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.all(np.isfinite(uv) & (np.abs(uv) <= UV_TEXEL_LIMIT / int(resolution)), axis=(1, 2))
+    return tris[bad]
+
+
 def scene_fingerprint(scene):
     """Hash of the geometry, materials, world and object names of a SceneArrays (not the selection)."""
     h = hashlib.blake2b(digest_size=16)
@@ -87,7 +102,8 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
     """Check a bake of the objects ``names`` of ``scene`` before any work; returns its :class:`BakePlan`.
 
     Checks, in order: the mode, resolution, samples and bounces >= 1, a selection, every object
-    has a UV map, covers at least one texel and has no overlapping UVs, the scene has light,
+    has a UV map with finite, not huge coordinates, covers at least one texel and has no
+    overlapping UVs, the scene has light,
     GUIDED / FINAL_GATHER have a solution and FINAL_GATHER a PHYSICAL one of this very scene.
     ``will_solve``: the caller solves this scene with ``settings`` before baking (Run All), so
     only the cost mode is checked. Each object is rasterised once.
@@ -134,8 +150,10 @@ def _check_settings(settings, names):
 
 
 def _check_texels(scene, names, indices, R):
-    """Rasterise every object once: objects that cover no texel or have overlapping UVs are
-    errors. Returns the texels kept for the bake (:data:`TEXEL_CACHE_LIMIT`)."""
+    """Rasterise every object once: objects with non-finite or huge UVs (:func:`bad_uv_faces`),
+    that cover no texel or have overlapping UVs are errors. Returns the texels kept for the bake
+    (:data:`TEXEL_CACHE_LIMIT`)."""
+    _check_uv_values(scene, names, indices, R)
     texels, kept = {}, 0
     empty, overlapping = [], []
     for n, i in zip(names, indices):
@@ -157,6 +175,23 @@ def _check_texels(scene, names, indices, R):
                          f"texels of the {R} x {R} lightmap. Give each face its own area "
                          "(UV > Lightmap Pack, or Smart UV Project) and bake again")
     return texels
+
+
+def _check_uv_values(scene, names, indices, R):
+    """Objects whose UV maps hold non-finite or huge coordinates are errors: the faces could not
+    be placed on the lightmap (Inf / NaN cover nothing, huge values a strip across the image)."""
+    found = []
+    for n, i in zip(names, indices):
+        bad = bad_uv_faces(scene, i, R)
+        if len(bad):
+            uv = scene.triangle_uv[bad[0]]
+            found.append(f"'{n}' ({len(bad)} triangle{'s' if len(bad) > 1 else ''}, e.g. one with UV "
+                         f"{', '.join(f'({u:g}, {v:g})' for u, v in uv)})")
+    if found:
+        raise SceneError(f"The UV map of {'; '.join(found)} has non-finite or huge coordinates (Inf, "
+                         f"NaN, or beyond ±{UV_TEXEL_LIMIT / R:g}, where a {R} x {R} lightmap cannot "
+                         "place them): fix those UVs or unwrap again (UV > Lightmap Pack, or Smart UV "
+                         "Project) and bake again")
 
 
 def _check_solution(scene, names, settings, lmdp, will_solve):

@@ -147,6 +147,9 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
     corners = np.asarray(triangle_corners, dtype=np.float64).reshape(-1, 3, 3)
     T = len(corners)
     p = _shifted_pixel_coords(np.asarray(triangle_uv).reshape(T, 3, 2), R)
+    # Triangles with a non-finite UV cover nothing (``check_bake`` refuses them with a message);
+    # zeroed here, they are degenerate and their edge functions stay finite.
+    p = np.where(np.all(np.isfinite(p), axis=(1, 2))[:, None, None], p, 0.0)
     x0, y0, count, width = _pixel_boxes(p, R)
     e_from, e_to, e_sign, sign, strict = _edge_functions(p)
     count[sign == 0] = 0  # degenerate in UV: Blender skips it (z0 == 0)

@@ -210,3 +210,33 @@ def test_a_baked_object_with_a_broken_triangle_bakes_the_rest_and_says_so(bad, c
     floor = driver.bake(scene, ["Floor"], small_bake()).objects[0]
     np.testing.assert_array_equal(floor.texels.row, cornell_floor_bake.texels.row)
     np.testing.assert_allclose(floor.value, cornell_floor_bake.value, rtol=1e-4, atol=1e-6)
+
+
+# ---- class 16: non-finite or huge UVs are named as such --------------------------------------------
+
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan, 1e30, 1e10, 1e6])
+@pytest.mark.parametrize("name", ["Floor", "TallBox"])
+def test_non_finite_or_huge_uvs_are_refused_as_such(name, bad):
+    """Inf / NaN UVs used to leave holes silently, huge ones to be reported as overlapping UVs."""
+    from lmdp_addon.bake.checks import check_bake
+    scene = cornell_with()
+    tris = np.flatnonzero(scene.triangle_object == scene.object_names.index(name))
+    uv = scene.triangle_uv[tris]
+    shared = np.all(uv == uv[0, 1], axis=-1)          # the corners sharing that UV vertex
+    uv[shared, 0] = bad
+    scene.triangle_uv[tris] = uv
+    with pytest.raises(SceneError) as error:
+        check_bake(scene, [name], small_bake(bake_resolution=64))
+    message = str(error.value)
+    assert f"UV map of '{name}'" in message and "non-finite or huge coordinates" in message, message
+    assert "Overlapping" not in message
+    assert "±262144" in message                       # 2^24 / 64: where float32 UVs stop placing texels
+
+
+def test_uvs_outside_the_unit_square_but_not_huge_are_still_judged_by_their_texels():
+    from lmdp_addon.bake.checks import check_bake
+    scene = cornell_with()
+    tris = np.flatnonzero(scene.triangle_object == scene.object_names.index("Floor"))
+    scene.triangle_uv[tris] += 5.0                    # a legal tile outside [0, 1]: covers nothing
+    with pytest.raises(SceneError, match="covers no texel"):
+        check_bake(scene, ["Floor"], small_bake(bake_resolution=64))
