@@ -240,3 +240,108 @@ def test_uvs_outside_the_unit_square_but_not_huge_are_still_judged_by_their_texe
     scene.triangle_uv[tris] += 5.0                    # a legal tile outside [0, 1]: covers nothing
     with pytest.raises(SceneError, match="covers no texel"):
         check_bake(scene, ["Floor"], small_bake(bake_resolution=64))
+
+
+# ---- class 10: the memory budget covers bakes --------------------------------------------------------
+
+def no_rasterising(*args, **kwargs):
+    raise AssertionError("rasterised before the memory check")
+
+
+def test_a_bake_beyond_the_memory_budget_is_refused_at_once_with_the_figure(monkeypatch):
+    from lmdp_addon.bake import checks
+    from lmdp_addon.errors import BudgetError
+    monkeypatch.setattr(checks, "rasterize_texels", no_rasterising)
+    scene = cornell_with()
+    with pytest.raises(BudgetError) as error:
+        checks.check_bake(scene, ["Floor"], small_bake(bake_resolution=8192, bake_samples=1))
+    message = str(error.value)
+    assert "8192 x 8192" in message and "GiB" in message and "'Floor'" in message
+    assert "Memory Budget (memory_budget_gb)" in message and "Resolution" in message
+    need = float(message.split("about ")[1].split(" GiB")[0])
+    assert 8.0 < need < 20.0
+
+
+def test_the_memory_budget_setting_decides(monkeypatch):
+    from lmdp_addon.bake import checks
+    from lmdp_addon.errors import BudgetError
+    scene = cornell_with()
+    with pytest.raises(BudgetError, match="above the memory budget of 0.05 GiB"):
+        checks.check_bake(scene, ["Floor", "TallBox"], small_bake(bake_resolution=1024, memory_budget_gb=0.05))
+    plan = checks.check_bake(scene, ["Floor", "TallBox"], small_bake(bake_resolution=1024, memory_budget_gb=2.0))
+    assert 0.05 * 1024 ** 3 < plan.memory_bytes < 2.0 * 1024 ** 3
+
+
+def test_the_texel_bound_holds_and_is_tight_for_large_triangles():
+    from lmdp_addon.bake.checks import object_texels
+    from lmdp_addon.bake.texels import texel_count_bound
+    scene = scenes.build_scene_arrays("HEAVY")
+    for name in ("Floor", "TallBox"):
+        index = scene.object_names.index(name)
+        uv = scene.triangle_uv[scene.triangle_object == index]
+        for R in (64, 512):
+            n = len(object_texels(scene, index, R)[0])
+            bound = texel_count_bound(uv, R)
+            assert n <= bound
+    floor = cornell_with()
+    uv = floor.triangle_uv[floor.triangle_object == floor.object_names.index("Floor")]
+    n = len(object_texels(floor, floor.object_names.index("Floor"), 1024)[0])
+    assert n <= texel_count_bound(uv, 1024) <= 1.01 * n
+
+
+def traced_peak(call):
+    """(result, peak bytes allocated by numpy and Python during ``call``)."""
+    import tracemalloc
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        result = call()
+        return result, tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+
+
+def test_texels_and_their_rasterisation_are_lean():
+    """The root of the 6.3 GB at 4096 x 4096: ~120 B held and ~380 B at the peak of rasterising
+    per texel (positions, normals, differentials and their temporaries per texel)."""
+    from lmdp_addon.bake.checks import object_texels
+    from lmdp_addon.bake.texels import MAX_CANDIDATES, RASTER_BYTES_PER_TEXEL, TEXEL_BYTES
+    from lmdp_addon.bake.memory import CANDIDATE_BYTES
+    scene = cornell_with()
+    index = scene.object_names.index("Floor")
+    (ts, _), peak = traced_peak(lambda: object_texels(scene, index, 1024))
+    n = len(ts)
+    assert n == 1024 * 1024
+    held = sum(a.nbytes for a in (ts.row, ts.col, ts.triangle, ts.barycentric, ts.overlap))
+    assert held <= TEXEL_BYTES * n
+    assert peak <= RASTER_BYTES_PER_TEXEL * n + CANDIDATE_BYTES * MAX_CANDIDATES
+    # What is derived on demand is what was stored before.
+    corners = scene.corners()[scene.triangle_object == index]
+    np.testing.assert_allclose(ts.position, np.einsum("nk,nkj->nj", ts.barycentric, corners[ts.triangle]))
+    np.testing.assert_allclose(ts.normal, np.tile([0.0, 0.0, 1.0], (n, 1)))
+
+
+def test_the_estimate_covers_a_bake():
+    from lmdp_addon.bake import checks
+    scene = cornell_with()
+    settings = small_bake(bake_resolution=512, bake_samples=2, bake_margin=8, max_bounces=2)
+    names = ["Floor", "TallBox", "LeftWall"]
+    plan = checks.check_bake(scene, names, settings)
+    result, peak = traced_peak(lambda: driver.bake(scene, names, settings, plan=plan))
+    assert peak <= plan.memory_bytes <= 4 * peak + 256 * 1024 ** 2
+    for ob in result.objects:   # what each baked object keeps
+        kept = (ob.value.nbytes + ob.standard_error.nbytes + ob.image.nbytes
+                + sum(a.nbytes for a in (ob.texels.row, ob.texels.col, ob.texels.triangle, ob.texels.barycentric)))
+        assert kept <= 65 * ob.n_texels + 16 * 512 * 512
+
+
+def test_the_margin_dilation_works_on_the_ring_not_on_copies_of_the_image():
+    from lmdp_addon.bake.texels import dilate
+    R = 1024
+    mask = np.zeros((R, R), bool)
+    mask[100:400, 100:900] = True
+    mask[600:1000, 50:500] = True
+    image = np.random.default_rng(0).random((R, R, 3)).astype(np.float32)
+    (out, filled), peak = traced_peak(lambda: dilate(image, mask, 16, return_mask=True))
+    assert peak <= 48 * R * R               # a float64 copy and masks (was ~110 B per pixel)
+    assert filled.sum() > mask.sum() and np.all(out[mask] == image[mask])
