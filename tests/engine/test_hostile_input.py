@@ -304,19 +304,20 @@ def traced_peak(call):
 def test_texels_and_their_rasterisation_are_lean():
     """The root of the 6.3 GB at 4096 x 4096: ~120 B held and ~380 B at the peak of rasterising
     per texel (positions, normals, differentials and their temporaries per texel)."""
-    from lmdp_addon.bake.checks import object_texels
-    from lmdp_addon.bake.texels import MAX_CANDIDATES, RASTER_BYTES_PER_TEXEL, TEXEL_BYTES
+    from lmdp_addon.bake.texels import RASTER_BYTES_PER_TEXEL, TEXEL_BYTES, rasterize_texels
     from lmdp_addon.bake.memory import CANDIDATE_BYTES
     scene = cornell_with()
     index = scene.object_names.index("Floor")
-    (ts, _), peak = traced_peak(lambda: object_texels(scene, index, 1024))
+    tris = scene.triangle_object == index
+    chunk = 1 << 16
+    uv, corners, normals = scene.triangle_uv[tris], scene.corners()[tris], scene.triangle_geometry()[0][tris]
+    ts, peak = traced_peak(lambda: rasterize_texels(uv, corners, normals, 512, max_candidates=chunk))
     n = len(ts)
-    assert n == 1024 * 1024
+    assert n == 512 * 512
     held = sum(a.nbytes for a in (ts.row, ts.col, ts.triangle, ts.barycentric, ts.overlap))
     assert held <= TEXEL_BYTES * n
-    assert peak <= RASTER_BYTES_PER_TEXEL * n + CANDIDATE_BYTES * MAX_CANDIDATES
+    assert peak <= RASTER_BYTES_PER_TEXEL * n + CANDIDATE_BYTES * chunk
     # What is derived on demand is what was stored before.
-    corners = scene.corners()[scene.triangle_object == index]
     np.testing.assert_allclose(ts.position, np.einsum("nk,nkj->nj", ts.barycentric, corners[ts.triangle]))
     np.testing.assert_allclose(ts.normal, np.tile([0.0, 0.0, 1.0], (n, 1)))
 
@@ -324,7 +325,7 @@ def test_texels_and_their_rasterisation_are_lean():
 def test_the_estimate_covers_a_bake():
     from lmdp_addon.bake import checks
     scene = cornell_with()
-    settings = small_bake(bake_resolution=512, bake_samples=2, bake_margin=8, max_bounces=2)
+    settings = small_bake(bake_resolution=256, bake_samples=2, bake_margin=8, max_bounces=2)
     names = ["Floor", "TallBox", "LeftWall"]
     plan = checks.check_bake(scene, names, settings)
     result, peak = traced_peak(lambda: driver.bake(scene, names, settings, plan=plan))
@@ -332,15 +333,15 @@ def test_the_estimate_covers_a_bake():
     for ob in result.objects:   # what each baked object keeps
         kept = (ob.value.nbytes + ob.standard_error.nbytes + ob.image.nbytes
                 + sum(a.nbytes for a in (ob.texels.row, ob.texels.col, ob.texels.triangle, ob.texels.barycentric)))
-        assert kept <= 65 * ob.n_texels + 16 * 512 * 512
+        assert kept <= 65 * ob.n_texels + 16 * 256 * 256
 
 
 def test_the_margin_dilation_works_on_the_ring_not_on_copies_of_the_image():
     from lmdp_addon.bake.texels import dilate
-    R = 1024
+    R = 512
     mask = np.zeros((R, R), bool)
-    mask[100:400, 100:900] = True
-    mask[600:1000, 50:500] = True
+    mask[50:200, 50:450] = True
+    mask[300:500, 25:250] = True
     image = np.random.default_rng(0).random((R, R, 3)).astype(np.float32)
     (out, filled), peak = traced_peak(lambda: dilate(image, mask, 16, return_mask=True))
     assert peak <= 48 * R * R               # a float64 copy and masks (was ~110 B per pixel)
