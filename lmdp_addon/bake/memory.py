@@ -14,8 +14,8 @@ image of the same size. While one object is baked it needs, on top, the largest 
 
 Plus the BVH and per-triangle tables of the tracer (:data:`TRIANGLE_BYTES`). The coefficients
 are rounded up from the peak memory of bakes measured with ``tracemalloc`` and the process's
-peak resident size (a 4096 x 4096 floor of the Cornell box at one sample: 2.1 GiB traced, 2.5
-GiB resident, estimated 3.1 GiB).
+peak resident size, so the estimate is an upper bound (``tests/engine/test_hostile_input.py``
+checks it against a bake's traced peak).
 """
 from .texels import MAX_CANDIDATES, RASTER_BYTES_PER_TEXEL, TEXEL_BYTES
 

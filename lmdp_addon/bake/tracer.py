@@ -38,8 +38,8 @@ light at y_1 by light sampling; the hits the gather cannot serve continue as GUI
 Arrays are float32 in the hot loop (positions keep ~1e-7 relative precision). Hit points are
 rebuilt from the hit's barycentrics on the hit triangle, so they lie on its plane to the
 precision of its corners whatever the length of the ray, and every ray origin is offset along
-the normal by ``RayCaster.offset`` of the triangle it leaves (1e-5 of the magnitude of the
-coordinates there, see ``raycast``): nothing far away changes the offsets of a room.
+the normal by ``RayCaster.offset`` of the triangle it leaves (8 float32 ulps of the magnitude
+of the coordinates there, see ``raycast``): nothing far away changes the offsets of a room.
 """
 from dataclasses import dataclass
 

@@ -170,9 +170,24 @@ def test_ray_offsets_follow_the_coordinates_where_rays_start():
     plain, far = RayCaster(cornell_with()), RayCaster(cornell_with(ground_plane(5e4)))
     room = np.arange(plain.scene.n_triangles)
     np.testing.assert_array_equal(far.offset(room), plain.offset(room))
-    assert np.all(plain.offset(room) <= 1e-5) and np.all(plain.offset(room) >= 1e-6)
+    assert np.all(plain.offset(room) <= 2.0 ** -20) and np.all(plain.offset(room) >= 2.0 ** -23)
     ground = np.flatnonzero(far.scene.triangle_object == far.scene.object_names.index("Ground"))
-    np.testing.assert_allclose(far.offset(ground), 1e-5 * 5e4)
+    np.testing.assert_allclose(far.offset(ground), 2.0 ** -20 * 5e4)
+
+
+@pytest.mark.parametrize("distance", [100.0, 1000.0])
+def test_a_room_far_from_the_world_origin_bakes_like_one_at_the_origin(distance):
+    """float32 positions there are only 8 to 60 µm apart: offsets of a fixed size self-intersect,
+    offsets much larger than the precision blur the 5 mm gap above the light."""
+    settings = small_bake(bake_samples=256)
+    here = driver.bake(cornell_with(), ["Floor"], settings).objects[0]
+    moved = cornell_with()
+    moved.vertices += np.array([distance, -distance, 0.0])
+    there = driver.bake(moved, ["Floor"], settings).objects[0]
+    a, b = (ob.value.astype(np.float64).mean() for ob in (here, there))
+    sigma = np.hypot(*(np.sqrt((ob.standard_error.astype(np.float64) ** 2).sum()) / ob.value.size
+                       for ob in (here, there)))
+    assert abs(a - b) <= 5 * sigma, (a, b, sigma)
 
 
 @pytest.mark.parametrize("case", ["1e30_vertex", "100_km_ground_plane"])
