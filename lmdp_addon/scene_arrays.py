@@ -99,8 +99,8 @@ class SceneArrays:
         counts = np.bincount(self.triangle_object[left_out], minlength=len(self.object_names))
         return [f"Object '{self.object_names[o]}': {counts[o]} triangle{'s' if counts[o] > 1 else ''} "
                 f"with non-finite or huge vertex coordinates (Inf, NaN or beyond ±{MAX_COORDINATE:g} m) "
-                "left out of the scene: they neither carry states, occlude nor emit. Fix the mesh "
-                "(e.g. delete the stray vertices) for it to take part"
+                f"left out of the scene (no states, shadows or light from {'it' if counts[o] == 1 else 'them'}): "
+                "fix the mesh, e.g. delete the stray vertices"
                 for o in np.flatnonzero(counts)]
 
     # -- derived geometry ---------------------------------------------------------------------

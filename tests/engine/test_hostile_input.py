@@ -175,6 +175,18 @@ def test_ray_offsets_follow_the_coordinates_where_rays_start():
     np.testing.assert_allclose(far.offset(ground), 2.0 ** -20 * 5e4)
 
 
+@pytest.mark.parametrize("bad", [np.inf, 1e30])
+def test_an_emitter_with_a_broken_triangle_still_lights_the_room(bad, cornell_floor_bake):
+    """A 1e30 triangle used to take nearly all of the light sampling's probability (its area)."""
+    scene = with_extra_triangle(cornell_with(), "Light", [(0.0, 0.0, 0.995), (bad, 0.0, 0.995), (0.0, 0.1, 0.995)],
+                                [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)])
+    light = scene.object_names.index("Light")
+    scene.triangle_emission[-1] = scene.triangle_emission[scene.triangle_object == light][0]
+    assert any("'Light': 1 triangle " in w for w in scene.warnings)
+    floor = driver.bake(scene, ["Floor"], small_bake()).objects[0]
+    np.testing.assert_allclose(floor.value, cornell_floor_bake.value, rtol=1e-4, atol=1e-6)
+
+
 @pytest.mark.parametrize("distance", [100.0, 1000.0])
 def test_a_room_far_from_the_world_origin_bakes_like_one_at_the_origin(distance):
     """float32 positions there are only 8 to 60 µm apart: offsets of a fixed size self-intersect,
