@@ -18,6 +18,7 @@ it, 1 mm; the Cornell box's light hangs 5 mm below the ceiling).
 import numpy as np
 
 from .errors import SceneError
+from .scene_arrays import MAX_COORDINATE
 
 #: Rays per embreex call: large enough to amortise the call, small enough for memory.
 BATCH = 1 << 20
@@ -54,8 +55,10 @@ class RayCaster:
         self._identity = len(valid) == scene.n_triangles   # embree's primID is the triangle
         # Shared vertices and an index buffer: embreex copies its input element by element, and
         # a vertex list is about half the size of three corners per triangle. The valid
-        # triangles only use finite vertices; the others are zeroed.
-        vertices = np.where(np.isfinite(scene.vertices), scene.vertices, 0.0).astype(np.float32)
+        # triangles only use usable vertices (finite, within ±MAX_COORDINATE); the others are zeroed.
+        with np.errstate(invalid="ignore"):
+            usable = np.all(np.abs(scene.vertices) <= MAX_COORDINATE, axis=1)
+        vertices = np.where(usable[:, None], scene.vertices, 0.0).astype(np.float32)
         self._embree = rtcore_scene.EmbreeScene()
         TriangleMesh(self._embree, vertices, np.ascontiguousarray(scene.triangles[valid], dtype=np.int32))
         self.triangle_offset = triangle_offsets(scene, valid)

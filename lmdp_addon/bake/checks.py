@@ -157,9 +157,8 @@ def _check_settings(settings, names):
 
 
 def _check_texels(scene, names, indices, R):
-    """Rasterise every object once: objects with non-finite or huge UVs (:func:`bad_uv_faces`),
-    that cover no texel or have overlapping UVs are errors. Returns the texels kept for the bake
-    (:data:`TEXEL_CACHE_LIMIT`)."""
+    """Rasterise every object once: objects that cover no texel or have overlapping UVs are
+    errors. Returns the texels kept for the bake (:data:`TEXEL_CACHE_LIMIT`)."""
     texels, kept = {}, 0
     empty, overlapping = [], []
     for n, i in zip(names, indices):

@@ -212,9 +212,9 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
 def texel_count_bound(triangle_uv, resolution):
     """An upper bound on the texels that triangles with UVs ``(T, 3, 2)`` cover in an R x R
     image, without rasterising: per triangle the fewer of its clipped pixel box and
-    ``A + P/2 + 1`` (area and perimeter in pixels: a convex region holds fewer lattice points,
-    Bokowski, Hadwiger & Wills 1972), summed, at most R². Tight for large triangles; overlapping
-    UVs (an error of their own) count twice. Non-finite UVs cover nothing."""
+    ``A + P/2 + 1`` (a convex region of area A and perimeter P, in pixels, contains at most that
+    many points of a lattice of unit spacing), summed, at most R². Tight for large triangles;
+    overlapping UVs (an error of their own) count twice. Non-finite UVs cover nothing."""
     R = int(resolution)
     T = len(triangle_uv)
     if T == 0:
