@@ -317,8 +317,8 @@ def _iterative(S, q, b, delta, reachable, tolerance, max_iterations, seed, progr
         # The cap cut a stage short: the true residual decides.
         converged_all = rel <= threshold
         if not converged_all:
-            message = (f"stopped at the cap of {cap} iterations (Max Iterations) with relative "
-                       f"residual {rel:.2e} > tolerance {tolerance:g}")
+            message = (f"stopped at the cap of {cap} iteration{'s' if cap != 1 else ''} (Max Iterations) "
+                       f"with relative residual {rel:.2e} > tolerance {tolerance:g}")
     return y, iterations, converged_all, history, history_rel, message
 
 

@@ -45,7 +45,7 @@ def test_iterative_stops_at_max_iterations_and_says_it_did_not_converge(channels
     assert sol.iterations <= cap
     assert not sol.converged
     assert sol.residual > 1e-9
-    assert f"cap of {cap} iterations" in sol.message and "Max Iterations" in sol.message
+    assert f"cap of {cap} iteration" in sol.message and "Max Iterations" in sol.message
     assert "NOT converged" in sol.summary()
 
 
