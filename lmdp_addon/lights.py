@@ -153,7 +153,7 @@ class EmitterSampler:
         d_plane = dot3(o, n_l) - np.take(self.plane32, e)
         return np.take(self.longest2, e) > d_plane * d_plane
 
-    def next_event(self, points, normals, rng, caster, mis=True):
+    def next_event(self, points, normals, rng, caster, mis=True, lift=None):
         """``(values (k, 3) float32, shadow rays)``: the light-sampling half of the MIS estimate
         of D_e(y) = (1/π) ∫ L_e cos θ dω at surface points y (``mis=False``: the whole of D_e(y)
         by light sampling alone, weight ``q / p_L``; for paths that end at y).
@@ -168,13 +168,16 @@ class EmitterSampler:
         unbiased whatever density drew the ray (in GUIDED mode q is the cosine part of the
         mixture only: a cheaper, still exact, partition of unity; Veach's balance heuristic when
         sampling is purely cosine). ``caster``: the :class:`~lmdp_addon.raycast.RayCaster` of
-        the shadow rays, whose origins are lifted by its offset along ``normals``.
+        the shadow rays, whose origins are lifted along ``normals`` by ``lift (k,)``, the
+        offsets of the points' triangles (``caster.offset(triangles)``; None: ``caster.offset()``),
+        and which stop short of the emitter by its own offset (``caster.shadow_distance``).
         """
         k = len(points)
         out = np.zeros((k, 3), np.float32)
         if self.n_triangles == 0 or k == 0:
             return out, 0
-        eps = np.float32(caster.offset())
+        eps = (np.float32(caster.offset()) if lift is None
+               else np.asarray(lift, dtype=np.float32).reshape(-1, 1))
         r = rng.random((k, 3), dtype=np.float32)
         r1, r2 = np.ascontiguousarray(r[:, 1]), np.ascontiguousarray(r[:, 2])
         if self.n_triangles == 1:
@@ -196,7 +199,7 @@ class EmitterSampler:
         ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (dist > 0))
         if len(ok) == 0:
             return out, 0
-        tmax = np.maximum(np.take(dist, ok) - eps, 0.0)
+        tmax = caster.shadow_distance(np.take(dist, ok), np.take(self.triangles, np.take(e, ok)))
         blocked = caster.occluded(rows(origin, ok), rows(dl, ok), tmax)
         vis = ok[~blocked]
         if len(vis) == 0:
@@ -245,12 +248,13 @@ class EmitterSampler:
             solid_angle[close] = omega
         return dl, dist, solid_angle
 
-    def direct_light(self, points, normals, rng, caster):
+    def direct_light(self, points, normals, rng, caster, lift=None):
         """``(D_e(y) (k, 3) float32, shadow rays)`` = (1/π) ∫ L_e cos θ dω at surface points y
         with normals ``normals`` (the side that is lit), by light sampling alone: one shadow ray
-        each (:meth:`next_event` with ``mis=False``)."""
+        each (:meth:`next_event` with ``mis=False``; ``lift`` as there)."""
         return self.next_event(np.ascontiguousarray(points, dtype=np.float32),
-                               np.ascontiguousarray(normals, dtype=np.float32), rng, caster, mis=False)
+                               np.ascontiguousarray(normals, dtype=np.float32), rng, caster, mis=False,
+                               lift=lift)
 
     def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals):
         """BSDF-sampling half of the MIS estimate for the rays ``hits (k,)`` of a wavefront (from

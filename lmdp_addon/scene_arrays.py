@@ -14,6 +14,11 @@ from .errors import SceneError
 #: Guards the nesting count of ``SceneArrays.held`` (the build's threads share a scene).
 _HOLD_LOCK = threading.Lock()
 
+#: Largest vertex coordinate (metres, absolute) a usable triangle may have. The ray tracer
+#: works in float32 and embree's ray-triangle test forms products of three coordinates, which
+#: overflow float32 beyond about 7e12; only corrupt or runaway geometry gets near this.
+MAX_COORDINATE = 1e12
+
 #: Rec.709 / sRGB-linear luminance weights.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -38,7 +43,8 @@ class SceneArrays:
     object_carries_states (O,) bool: selected meshes carry LMDP states; others only occlude
     object_has_uv       (O,) bool
     world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays
-    warnings            messages for the user gathered during extraction
+    warnings            messages for the user gathered during extraction, and one per object
+                        with triangles that are left out (:meth:`usable_triangles`)
     """
 
     vertices: np.ndarray
@@ -80,6 +86,22 @@ class SceneArrays:
             raise SceneError("Scene arrays are inconsistent: a triangle indexes a missing vertex")
         if t and (self.triangle_object.min() < 0 or self.triangle_object.max() >= len(self.object_names)):
             raise SceneError("Scene arrays are inconsistent: a triangle names a missing object")
+        self.warnings = list(self.warnings)
+        for message in self._unusable_warnings():
+            if message not in self.warnings:
+                self.warnings.append(message)
+
+    def _unusable_warnings(self):
+        """One message per object with triangles that :meth:`usable_triangles` leaves out."""
+        left_out = ~self.usable_triangles()
+        if not left_out.any():
+            return []
+        counts = np.bincount(self.triangle_object[left_out], minlength=len(self.object_names))
+        return [f"Object '{self.object_names[o]}': {counts[o]} triangle{'s' if counts[o] > 1 else ''} "
+                f"with non-finite or huge vertex coordinates (Inf, NaN or beyond ±{MAX_COORDINATE:g} m) "
+                f"left out of the scene (no states, shadows or light from {'it' if counts[o] == 1 else 'them'}): "
+                "fix the mesh, e.g. delete the stray vertices"
+                for o in np.flatnonzero(counts)]
 
     # -- derived geometry ---------------------------------------------------------------------
     @contextmanager
@@ -118,30 +140,43 @@ class SceneArrays:
         """(T, 3, 3) float64 corner positions."""
         return self._derived("corners", lambda: self.vertices[self.triangles])
 
+    def usable_triangles(self):
+        """(T,) bool: triangles whose corners are finite and within ±:data:`MAX_COORDINATE`.
+        The others are left out of everything (area 0: no states, no BVH, no emission, no scene
+        bounds) and named in :attr:`warnings`."""
+        return self._derived("usable", self._usable)
+
+    def _usable(self):
+        with np.errstate(invalid="ignore"):
+            ok = np.all(np.abs(self.vertices) <= MAX_COORDINATE, axis=1)   # False for Inf, NaN
+        return np.all(ok[self.triangles], axis=1) if len(self.triangles) else np.zeros(0, bool)
+
     def triangle_geometry(self):
         """Face normals (T, 3) (unit, zero for degenerate triangles) and areas (T,) in m^2.
 
-        Non-finite triangles get area 0 and a zero normal.
+        Triangles that are not :meth:`usable_triangles` get area 0 and a zero normal.
         """
         return self._derived("geometry", self._triangle_geometry)
 
     def _triangle_geometry(self):
         c = self.corners()
-        cross = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
-        norm = np.linalg.norm(cross, axis=1)
-        finite = np.isfinite(norm) & np.all(np.isfinite(c), axis=(1, 2))
+        with np.errstate(invalid="ignore", over="ignore"):     # the unusable triangles: Inf, NaN
+            cross = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+            norm = np.linalg.norm(cross, axis=1)
+        finite = np.isfinite(norm) & self.usable_triangles()
         area = np.where(finite, 0.5 * norm, 0.0)
         with np.errstate(invalid="ignore", divide="ignore"):
             normal = np.where((area > 0)[:, None], cross / np.where(norm > 0, norm, 1.0)[:, None], 0.0)
         return normal, area
 
     def valid_triangles(self):
-        """Boolean mask of triangles with finite corners and non-zero area."""
+        """Boolean mask of usable triangles (:meth:`usable_triangles`) with non-zero area."""
         return self.triangle_geometry()[1] > 0
 
     def bounding_diagonal(self):
-        """Length of the diagonal of the bounding box of all finite vertices (metres, >= 1e-6)."""
-        v = self.vertices[np.all(np.isfinite(self.vertices), axis=1)]
+        """Length of the diagonal of the bounding box of the corners of the usable triangles
+        (metres, >= 1e-6; 1 without any)."""
+        v = self.vertices[np.unique(self.triangles[self.usable_triangles()])]
         if len(v) == 0:
             return 1.0
         return max(float(np.linalg.norm(v.max(0) - v.min(0))), 1e-6)

@@ -37,7 +37,7 @@ class Settings:
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
-    memory_budget_gb: float = 8.0     #: refuse to build problems whose estimate exceeds this
+    memory_budget_gb: float = 8.0     #: refuse builds and bakes whose memory estimate exceeds this (GiB)
 
     @property
     def strata_count(self):

@@ -10,14 +10,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import SceneError, StageOrderError
+from ..errors import BudgetError, SceneError, StageOrderError
 from ..settings import BAKE_MODES
-from .texels import rasterize_texels
+from .memory import estimate_bake_bytes
+from .texels import rasterize_texels, texel_count_bound
 
 #: Most texels (summed over objects) whose rasterisation a :class:`BakePlan` keeps for the bake:
-#: about 120 B each (positions, normals, barycentrics, differentials), so at most ~120 MiB held
-#: between the check and the bake; objects beyond it are rasterised again when baked.
+#: ``texels.TEXEL_BYTES`` (41 B) each, so at most ~41 MiB held between the check and the bake;
+#: objects beyond it are rasterised again when baked.
 TEXEL_CACHE_LIMIT = 1 << 20
+#: Blender stores UVs as 32-bit floats: a coordinate beyond 2^24 texels of the image
+#: (``2**24 / R`` in UV units) cannot be placed within a texel, and only corrupt or
+#: world-scale UV maps reach it.
+UV_TEXEL_LIMIT = float(1 << 24)
 
 
 @dataclass
@@ -30,6 +35,7 @@ class BakePlan:
     texels      object index -> ``(TexelSet, triangles (T_o,))`` (:func:`object_texels`) of the
                 objects the check rasterised, up to :data:`TEXEL_CACHE_LIMIT` texels in all
     warnings    messages for the user (the bake goes on)
+    memory_bytes  the bake's estimated peak memory (``memory.estimate_bake_bytes``)
     """
 
     names: list
@@ -37,6 +43,7 @@ class BakePlan:
     resolution: int
     texels: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    memory_bytes: int = 0
 
 
 def object_index(scene, name):
@@ -50,9 +57,11 @@ def object_index(scene, name):
 def object_texels(scene, index, resolution):
     """Texels of object ``index`` at ``resolution``: ``(TexelSet, triangles (T_o,))``.
 
-    ``triangles`` maps the TexelSet's local triangle indices to the scene's triangles.
+    ``triangles`` maps the TexelSet's local triangle indices to the scene's triangles. Triangles
+    left out of the scene for non-finite or huge corners (``SceneArrays.usable_triangles``, which
+    warns about them) get no texels.
     """
-    tris = np.flatnonzero(scene.triangle_object == index)
+    tris = np.flatnonzero((scene.triangle_object == index) & scene.usable_triangles())
     normals, _ = scene.triangle_geometry()
     ts = rasterize_texels(scene.triangle_uv[tris], scene.corners()[tris], normals[tris], resolution)
     return ts, tris
@@ -71,6 +80,17 @@ def uv_overlaps(scene, index, resolution, texels=None):
     return count, example
 
 
+def bad_uv_faces(scene, index, resolution):
+    """(k,) scene triangles of object ``index`` whose UVs are non-finite or beyond
+    ``UV_TEXEL_LIMIT / resolution`` in magnitude (:data:`UV_TEXEL_LIMIT`), among the triangles
+    that get texels (``object_texels``: the scene's usable ones)."""
+    tris = np.flatnonzero((scene.triangle_object == index) & scene.usable_triangles())
+    uv = scene.triangle_uv[tris].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.all(np.isfinite(uv) & (np.abs(uv) <= UV_TEXEL_LIMIT / int(resolution)), axis=(1, 2))
+    return tris[bad]
+
+
 def scene_fingerprint(scene):
     """Hash of the geometry, materials, world and object names of a SceneArrays (not the selection)."""
     h = hashlib.blake2b(digest_size=16)
@@ -85,7 +105,9 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
     """Check a bake of the objects ``names`` of ``scene`` before any work; returns its :class:`BakePlan`.
 
     Checks, in order: the mode, resolution, samples and bounces >= 1, a selection, every object
-    has a UV map, covers at least one texel and has no overlapping UVs, the scene has light,
+    has a UV map with finite, not huge coordinates, the bake's memory estimate fits
+    ``memory_budget_gb`` (:func:`check_bake_memory`), every object covers at least one texel and
+    has no overlapping UVs, the scene has light,
     GUIDED / FINAL_GATHER have a solution and FINAL_GATHER a PHYSICAL one of this very scene.
     ``will_solve``: the caller solves this scene with ``settings`` before baking (Run All), so
     only the cost mode is checked. Each object is rasterised once.
@@ -97,6 +119,8 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
     if no_uv:
         raise SceneError(f"No UV map on {', '.join(no_uv)}: add one (UV > Smart UV Project or "
                          "Lightmap Pack) or deselect them; the lightmap is laid out by the UV map")
+    _check_uv_values(scene, names, indices, R)
+    memory = check_bake_memory(scene, names, indices, settings)
     texels = _check_texels(scene, names, indices, R)
     if not scene.has_light():
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
@@ -105,7 +129,8 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
     if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
                         "the optimal policy is zero; a value below 1 keeps it unbiased")
-    return BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings)
+    return BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings,
+                    memory_bytes=memory)
 
 
 def _check_settings(settings, names):
@@ -149,6 +174,45 @@ def _check_texels(scene, names, indices, R):
                          f"texels of the {R} x {R} lightmap. Give each face its own area "
                          "(UV > Lightmap Pack, or Smart UV Project) and bake again")
     return texels
+
+
+def _check_uv_values(scene, names, indices, R):
+    """Objects whose UV maps hold non-finite or huge coordinates are errors: the faces could not
+    be placed on the lightmap (Inf / NaN cover nothing, huge values a strip across the image)."""
+    found = []
+    for n, i in zip(names, indices):
+        bad = bad_uv_faces(scene, i, R)
+        if len(bad):
+            uv = scene.triangle_uv[bad[0]]
+            found.append(f"'{n}' ({len(bad)} triangle{'s' if len(bad) > 1 else ''}, e.g. one with UV "
+                         f"{', '.join(f'({u:g}, {v:g})' for u, v in uv)})")
+    if found:
+        raise SceneError(f"The UV map of {'; '.join(found)} has non-finite or huge coordinates (Inf, "
+                         f"NaN, or beyond ±{UV_TEXEL_LIMIT / R:g}, where a {R} x {R} lightmap cannot "
+                         "place them): fix those UVs or unwrap again (UV > Lightmap Pack, or Smart UV "
+                         "Project) and bake again")
+
+
+def check_bake_memory(scene, names, indices, settings):
+    """The bake's estimated peak memory (bytes, ``memory.estimate_bake_bytes``) from an upper
+    bound on each object's texels (``texels.texel_count_bound``: no rasterisation); raises
+    :class:`BudgetError` when it exceeds ``settings.memory_budget_gb``."""
+    from .driver import BAKE_THREADS, PATHS_PER_UNIT   # the driver imports this module
+    R = int(settings.bake_resolution)
+    counts = [texel_count_bound(scene.triangle_uv[(scene.triangle_object == i) & scene.usable_triangles()], R)
+              for i in indices]
+    need = estimate_bake_bytes(counts, R, int(settings.bake_samples), scene.n_triangles, BAKE_THREADS,
+                               PATHS_PER_UNIT)
+    budget = settings.memory_budget_gb
+    if budget is not None and need > float(budget) * 1024 ** 3:
+        largest = int(np.argmax(counts))
+        raise BudgetError(
+            f"Baking {len(names)} object{'s' if len(names) > 1 else ''} at {R} x {R} would need "
+            f"about {need / 1024 ** 3:.1f} GiB ('{names[largest]}' alone covers up to "
+            f"{counts[largest]:,} texels), above the memory budget of {float(budget):g} GiB: lower "
+            "LMDP > Bake > Resolution, bake fewer objects at once, or raise LMDP > Memory Budget "
+            "(memory_budget_gb)")
+    return need
 
 
 def _check_solution(scene, names, settings, lmdp, will_solve):

@@ -37,7 +37,7 @@ from .checks import check_bake, object_index, object_texels
 from .gather import build_gather
 from .guide import build_guide
 from .results import IMAGE_SUFFIX, BakeResult, ObjectBake
-from .texels import TexelSet, dilate, sample_footprint
+from .texels import dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
 
 # The operators read BakeResult, ObjectBake and IMAGE_SUFFIX here.
@@ -51,6 +51,8 @@ PATHS_PER_UNIT = 1 << 17
 BAKE_THREADS = 2
 #: Most independent batches per texel (for the standard error).
 MAX_BATCHES = 8
+#: Texels whose nearest states are looked up at once.
+STATE_LOOKUP_CHUNK = 1 << 18
 
 
 def batch_count(samples):
@@ -85,13 +87,6 @@ def work_units(n_texels, batches, per_batch):
                    for lo in range(0, n_texels, chunk)]
 
 
-def _texel_subset(ts, sel):
-    """A TexelSet of the texels ``sel`` (for footprint sampling of a chunk)."""
-    return TexelSet(ts.resolution, ts.row[sel], ts.col[sel], ts.triangle[sel], ts.barycentric[sel],
-                    ts.position[sel], ts.normal[sel], ts.pixel_barycentric_derivatives[sel],
-                    ts.triangle_corners, ts.triangle_normals)
-
-
 # ---- the bake of one object -------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
@@ -108,30 +103,50 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     n_tex = len(ts)
     B = batch_count(N)
     states = np.full(n_tex, -1, dtype=np.int64)
-    if guide is not None and n_tex:
-        states = guide.states_at(ts.position, ts.normal, np.full(n_tex, index))
+    if guide is not None:
+        for lo in range(0, n_tex, STATE_LOOKUP_CHUNK):    # bounded temporaries (positions, normals)
+            sub = ts.subset(slice(lo, lo + STATE_LOOKUP_CHUNK))
+            states[lo:lo + len(sub)] = guide.states_at(sub.position, sub.normal, np.full(len(sub), index))
     progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
-    acc, acc2, stats = _trace_batches(tracer, ts, states, B, N // B, int(settings.seed), object_number,
-                                      name, progress, threads)
-    value = acc / B
-    if B > 1:
-        stderr = np.sqrt(np.maximum(acc2 - B * value * value, 0.0) / (B - 1) / B)
-    else:
-        stderr = np.full_like(value, np.nan)
+    acc, acc2, stats = _trace_batches(tracer, ts, tris[ts.triangle], states, B, N // B, int(settings.seed),
+                                      object_number, name, progress, threads)
+    del states
+    value, stderr = _batch_statistics(acc, acc2, B)
+    del acc, acc2
     image = np.zeros((R, R, 4), np.float32)
     if n_tex:
-        rgb = ts.to_image(value.astype(np.float32))
+        rgb = ts.to_image(value)
         filled_rgb, filled = dilate(rgb, ts.covered_mask(), int(settings.bake_margin), return_mask=True)
+        del rgb
         image[..., :3] = filled_rgb
         image[..., 3] = filled.astype(np.float32)
-    return ObjectBake(name=name, texels=ts, triangles=tris, value=value.astype(np.float32),
-                      standard_error=stderr.astype(np.float32), image=image, samples=N, batches=B,
-                      stats=stats, seconds=time.perf_counter() - t0)
+    return ObjectBake(name=name, texels=ts, triangles=tris, value=value, standard_error=stderr, image=image,
+                      samples=N, batches=B, stats=stats, seconds=time.perf_counter() - t0)
 
 
-def _trace_batches(tracer, ts, states, B, per_batch, seed, object_number, name, progress, threads):
+def _batch_statistics(acc, acc2, B):
+    """``(value, standard error)`` (n, 3) float32 of the texels from the sums of their B batch
+    means ``acc`` and of their squares ``acc2`` (float64; both are overwritten):
+    value = acc / B, standard error = sqrt(max(acc2 - B value², 0) / (B - 1) / B), NaN for
+    B = 1."""
+    acc /= B
+    value = acc.astype(np.float32)
+    if B == 1:
+        return value, np.full_like(value, np.nan)
+    square = np.multiply(acc, B)
+    square *= acc
+    acc2 -= square
+    del square
+    np.maximum(acc2, 0.0, out=acc2)
+    acc2 /= B - 1
+    acc2 /= B
+    return value, np.sqrt(acc2, out=acc2).astype(np.float32)
+
+
+def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_number, name, progress, threads):
     """``(Σ_b mean_b, Σ_b mean_b², TraceStats)`` over the B batches of ``per_batch`` paths of
-    every texel of ``ts`` (``states``: each texel's nearest state, -1: none), traced as the
+    every texel of ``ts`` (``triangles``: each texel's scene triangle, for its rays' offset;
+    ``states``: each texel's nearest state, -1: none), traced as the
     :func:`work_units` on ``threads`` threads. Running sums keep memory O(texels), not
     O(batches x texels); they are formed in unit order, so bakes are bit-identical whatever
     order the threads finish in."""
@@ -144,7 +159,7 @@ def _trace_batches(tracer, ts, states, B, per_batch, seed, object_number, name, 
     def run(unit_id):
         b0, lo, hi = units[unit_id]
         rng = np.random.default_rng([seed, object_number, b0, unit_id])
-        sub = _texel_subset(ts, np.arange(lo, hi))
+        sub = ts.subset(slice(lo, hi))
         k = (hi - lo) * per_batch
         parts = []
         for b in range(b0, b0 + group):     # the batches' starting points, one after another
@@ -154,7 +169,7 @@ def _trace_batches(tracer, ts, states, B, per_batch, seed, object_number, name, 
                           u_mix.reshape(k)))
         position, normal, u, u_mix = (np.concatenate(p) if group > 1 else p[0] for p in zip(*parts))
         values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
-                                  u, u_mix, rng)
+                                  u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group))
         return unit_id, values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64), st
 
     total = len(units)

@@ -173,7 +173,8 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
     face_normals = scene.triangle_geometry()[0].astype(np.float32)
     albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
     reflects = (albedo.max(axis=1) > 0) & ~scene.is_emissive()
-    lifted = states.points + caster.offset() * states.normals
+    corners = scene.corners()
+    lifted = caster.lift(states.points, states.normals, states.point_triangle)
     per_chunk = max(1, GATHER_RAY_BUDGET // R)
     for start in range(0, len(live), per_chunk):
         ids = live[start:start + per_chunk]
@@ -184,14 +185,16 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         owner = np.repeat(ids, R)
         d = cosine_directions(states.normals[owner].astype(np.float32), u, stratified=True)
         origin = lifted[owner].astype(np.float32)
-        tri, dist = caster.intersect(origin, d)
+        tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
         hit = np.flatnonzero(tri >= 0)
         t = tri[hit]
         ng = face_normals[t]
         keep = (np.einsum("ij,ij->i", ng, d[hit]) < 0) & reflects[t]
         hit, t, ng = hit[keep], t[keep], ng[keep]
-        pos = origin[hit] + d[hit] * dist[hit, None]
-        value = albedo[t] * lights.direct_light(pos, ng, rng, caster)[0]
+        # The hit point from its barycentrics: on the triangle whatever the ray's length.
+        tc = corners[t]
+        pos = tc[:, 0] + bu[hit, None] * (tc[:, 1] - tc[:, 0]) + bv[hit, None] * (tc[:, 2] - tc[:, 0])
+        value = albedo[t] * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R

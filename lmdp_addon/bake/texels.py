@@ -24,6 +24,11 @@ R x R pixels onto a mesh as follows, and this module reproduces it exactly:
 Everything is vectorised over texels: (triangle, pixel) candidates from the triangles' pixel
 bounding boxes are tested in chunks of bounded size, so 200k small triangles or one huge one
 cost a few numpy passes.
+
+Memory: a :class:`TexelSet` stores per texel only what it cannot derive, its pixel, triangle
+and barycentric weights (:data:`TEXEL_BYTES`); positions, normals and differentials are computed
+from the triangles when asked for. Rasterising holds a bounded chunk of candidates plus about
+:data:`RASTER_BYTES_PER_TEXEL` per covered texel at its peak.
 """
 from dataclasses import dataclass
 
@@ -33,6 +38,17 @@ import numpy as np
 PIXEL_OFFSET = (0.5 + 0.001, 0.5 + 0.002)
 #: Half width of Cycles' jitter box around the texel point, in pixels.
 FOOTPRINT_HALF_WIDTH = 0.25
+#: Bytes a :class:`TexelSet` holds per texel: row, col (int32), triangle (int64), barycentric
+#: (3 float64), overlap (bool).
+TEXEL_BYTES = 4 + 4 + 8 + 24 + 1
+#: Peak bytes of :func:`rasterize_texels` per covered texel (the candidates' output lists, their
+#: concatenation, the sort that keeps the last triangle, the TexelSet), beyond its chunk:
+#: 93 B measured with ``tracemalloc`` at 4096 x 4096, rounded up.
+RASTER_BYTES_PER_TEXEL = 100
+#: (triangle, pixel) candidates tested at once by :func:`rasterize_texels` (~100 B each).
+MAX_CANDIDATES = 1 << 20
+#: Texels whose positions / normals are computed at once (bounded temporaries).
+TEXEL_CHUNK = 1 << 18
 
 
 @dataclass
@@ -43,13 +59,16 @@ class TexelSet:
     row, col      (n,) int32 pixel indices; row 0 is the bottom row (Blender's ``Image.pixels``)
     triangle      (n,) int64 index of the triangle each texel lies on
     barycentric   (n, 3) float64 weights of the triangle's corners 0, 1, 2 (sum to 1)
-    position      (n, 3) float64 world position of the texel point (metres)
-    normal        (n, 3) float64 unit normal there (interpolated when corner normals were given)
-    pixel_barycentric_derivatives  (n, 2, 2): d(b1, b2)/d(x, y) of Cycles' bake differentials
-        (half the true derivative, see the module doc); rows: b1, b2; columns: x, y
     triangle_corners, triangle_normals: the arrays the texels were computed from (not copied)
+    triangle_derivatives  (T, 2, 2) Cycles' bake differentials of each triangle
     overlap       (n,) bool: the texel's centre is covered by more than one triangle (overlapping
         UVs; the last triangle wins, like Blender), or None when not known (a subset)
+
+    Derived on access (not stored, see the module doc): ``position`` (n, 3) float64 world
+    position of the texel point (metres), ``normal`` (n, 3) float64 unit normal there
+    (interpolated when corner normals were given), ``pixel_barycentric_derivatives`` (n, 2, 2):
+    d(b1, b2)/d(x, y) of Cycles' bake differentials (half the true derivative, see the module
+    doc); rows: b1, b2; columns: x, y.
     """
 
     resolution: int
@@ -57,15 +76,36 @@ class TexelSet:
     col: np.ndarray
     triangle: np.ndarray
     barycentric: np.ndarray
-    position: np.ndarray
-    normal: np.ndarray
-    pixel_barycentric_derivatives: np.ndarray
     triangle_corners: np.ndarray
     triangle_normals: np.ndarray
+    triangle_derivatives: np.ndarray
     overlap: np.ndarray = None
 
     def __len__(self):
         return len(self.row)
+
+    @property
+    def position(self):
+        """(n, 3) float64 world positions of the texel points: Σ_k b_k corner_k."""
+        return _chunked(len(self), 3, lambda s: np.einsum("nk,nkj->nj", self.barycentric[s],
+                                                         self.triangle_corners[self.triangle[s]]))
+
+    @property
+    def normal(self):
+        """(n, 3) float64 unit normals at the texel points."""
+        return _chunked(len(self), 3, lambda s: _interpolate_normals(self.triangle_normals, self.triangle[s],
+                                                                    self.barycentric[s]))
+
+    @property
+    def pixel_barycentric_derivatives(self):
+        """(n, 2, 2) bake differentials of each texel's triangle."""
+        return self.triangle_derivatives[self.triangle]
+
+    def subset(self, index):
+        """The texels ``index`` (an index array or slice) as a TexelSet (``overlap`` unknown)."""
+        return TexelSet(self.resolution, self.row[index], self.col[index], self.triangle[index],
+                        self.barycentric[index], self.triangle_corners, self.triangle_normals,
+                        self.triangle_derivatives)
 
     @property
     def flat_index(self):
@@ -120,6 +160,15 @@ def _bake_differentials(p):
     return d
 
 
+def _chunked(n, width, compute):
+    """(n, width) float64 from ``compute(slice)`` over chunks of :data:`TEXEL_CHUNK` rows."""
+    out = np.empty((n, width))
+    for start in range(0, n, TEXEL_CHUNK):
+        s = slice(start, min(start + TEXEL_CHUNK, n))
+        out[s] = compute(s)
+    return out
+
+
 def _interpolate_normals(triangle_normals, triangle, bary):
     n = np.asarray(triangle_normals, dtype=np.float64)
     if n.ndim == 3:  # per-corner normals: smooth shading
@@ -131,7 +180,7 @@ def _interpolate_normals(triangle_normals, triangle, bary):
 
 
 def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution,
-                     max_candidates=1 << 22):
+                     max_candidates=MAX_CANDIDATES):
     """Covered texels of an R x R image for triangles with UVs, exactly like Blender's bake.
 
     triangle_uv       (T, 3, 2) UV of each corner
@@ -147,17 +196,40 @@ def rasterize_texels(triangle_uv, triangle_corners, triangle_normals, resolution
     corners = np.asarray(triangle_corners, dtype=np.float64).reshape(-1, 3, 3)
     T = len(corners)
     p = _shifted_pixel_coords(np.asarray(triangle_uv).reshape(T, 3, 2), R)
+    # Triangles with a non-finite UV cover nothing (``check_bake`` refuses them with a message);
+    # zeroed here, they are degenerate and their edge functions stay finite.
+    p = np.where(np.all(np.isfinite(p), axis=(1, 2))[:, None, None], p, 0.0)
     x0, y0, count, width = _pixel_boxes(p, R)
     e_from, e_to, e_sign, sign, strict = _edge_functions(p)
     count[sign == 0] = 0  # degenerate in UV: Blender skips it (z0 == 0)
     row, col, triangle, bary = _covered_candidates(x0, y0, count, width, e_from, e_to, e_sign, strict,
                                                    max_candidates)
     row, col, triangle, bary, overlap = _last_triangle_wins(row, col, triangle, bary, R)
-    position = np.einsum("nk,nkj->nj", bary, corners[triangle])
-    normal = _interpolate_normals(triangle_normals, triangle, bary)
-    derivs = _bake_differentials(p)[triangle]
-    return TexelSet(R, row, col, triangle, bary, position, normal, derivs, corners,
-                    np.asarray(triangle_normals), overlap)
+    return TexelSet(R, row, col, triangle, bary, corners, np.asarray(triangle_normals),
+                    _bake_differentials(p), overlap)
+
+
+def texel_count_bound(triangle_uv, resolution):
+    """An upper bound on the texels that triangles with UVs ``(T, 3, 2)`` cover in an R x R
+    image, without rasterising: per triangle the fewer of its clipped pixel box and
+    ``A + P/2 + 1`` (a convex region of area A and perimeter P, in pixels, contains at most that
+    many points of a lattice of unit spacing), summed, at most R². Tight for large triangles;
+    overlapping UVs (an error of their own) count twice. Non-finite UVs cover nothing."""
+    R = int(resolution)
+    T = len(triangle_uv)
+    if T == 0:
+        return 0
+    p = _shifted_pixel_coords(np.asarray(triangle_uv).reshape(T, 3, 2), R)
+    finite = np.all(np.isfinite(p), axis=(1, 2))
+    p = np.where(finite[:, None, None], p, 0.0)
+    _, _, count, _ = _pixel_boxes(p, R)
+    a, b, c = p[:, 0], p[:, 1], p[:, 2]
+    area = 0.5 * np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1]))
+    perimeter = (np.linalg.norm(b - a, axis=1) + np.linalg.norm(c - b, axis=1)
+                 + np.linalg.norm(a - c, axis=1))
+    lattice = np.floor(area + 0.5 * perimeter + 1.0)
+    per_triangle = np.where(finite, np.minimum(count, lattice), 0)
+    return int(min(per_triangle.sum(), R * R))
 
 
 def _pixel_boxes(p, R):
@@ -203,30 +275,40 @@ def _covered_candidates(x0, y0, count, width, e_from, e_to, e_sign, strict, max_
     """``(row, col, triangle, barycentric)`` of every (triangle, pixel) whose texel point the
     triangle covers, in triangle order. The candidates (each triangle's bounding-box pixels) are
     tested in chunks of at most ``max_candidates``, so memory stays bounded whatever the
-    triangle sizes."""
+    triangle sizes; each edge function is evaluated from per-triangle tables gathered per
+    candidate (``e = sign · (d_x (y - f_y) - d_y (x - f_x))``)."""
+    # Per edge k: its start f, direction d = to - from, orientation sign and strictness (T,).
+    d = e_to - e_from
+    edges = [tuple(np.ascontiguousarray(a) for a in (e_from[:, k, 0], e_from[:, k, 1], d[:, k, 0],
+                                                     d[:, k, 1], e_sign[:, k], strict[:, k]))
+             for k in range(3)]
     rows, cols, tris, barys = [], [], [], []
     starts = np.concatenate([[0], np.cumsum(count)])
     total = int(starts[-1])
     for k0 in range(0, total, int(max_candidates)):
         k = np.arange(k0, min(k0 + int(max_candidates), total))
         t_idx = np.searchsorted(starts, k, side="right") - 1
-        local = k - starts[t_idx]
-        w = width[t_idx]
-        px = x0[t_idx] + (local % w)
-        py = y0[t_idx] + (local // w)
-        ef = e_from[t_idx]
-        ed = e_to[t_idx] - ef
-        # cross(edge, point - from) for the 3 edges: (m, 3)
-        e = ed[..., 0] * (py[:, None] - ef[..., 1]) - ed[..., 1] * (px[:, None] - ef[..., 0])
-        e = e * e_sign[t_idx]
-        inside = np.all(np.where(strict[t_idx], e > 0, e >= 0), axis=1)
-        if not np.any(inside):
+        local = k - np.take(starts, t_idx)
+        dy, dx = np.divmod(local, np.take(width, t_idx))
+        del k, local
+        px = np.take(x0, t_idx) + dx
+        py = np.take(y0, t_idx) + dy
+        del dx, dy
+        e, inside = [], np.ones(len(t_idx), dtype=bool)
+        for fx, fy, ex, ey, sign, left in edges:
+            ek = (np.take(ex, t_idx) * (py - np.take(fy, t_idx))
+                  - np.take(ey, t_idx) * (px - np.take(fx, t_idx))) * np.take(sign, t_idx)
+            inside &= np.where(np.take(left, t_idx), ek > 0, ek >= 0)
+            e.append(ek)
+        hit = np.flatnonzero(inside)
+        if len(hit) == 0:
             continue
-        e = e[inside]
-        rows.append(py[inside].astype(np.int32))
-        cols.append(px[inside].astype(np.int32))
-        tris.append(t_idx[inside].astype(np.int64))
-        barys.append(e / e.sum(axis=1, keepdims=True))
+        e = [np.take(ek, hit) for ek in e]
+        total_e = (e[0] + e[1]) + e[2]
+        rows.append(np.take(py, hit).astype(np.int32))
+        cols.append(np.take(px, hit).astype(np.int32))
+        tris.append(np.take(t_idx, hit).astype(np.int64))
+        barys.append(np.stack([ek / total_e for ek in e], axis=1))
     if not rows:
         return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros((0, 3))
     return np.concatenate(rows), np.concatenate(cols), np.concatenate(tris), np.concatenate(barys)
@@ -236,14 +318,17 @@ def _last_triangle_wins(row, col, triangle, bary, R):
     """One texel per covered pixel, sorted by pixel: where several triangles cover a pixel's
     texel point the last one wins (Blender rasterises in triangle order). Also returns
     ``overlap (n,)`` bool: the pixels covered by more than one triangle (a triangle covers
-    each pixel of its box at most once, so a repeated pixel is a second triangle)."""
+    each pixel of its box at most once, so a repeated pixel is a second triangle). The
+    candidates come in triangle order, so a stable sort by pixel keeps the triangles of a pixel
+    in order and the last of them is the winner."""
     flat = row.astype(np.int64) * R + col
-    order = np.lexsort((triangle, flat))
-    flat_sorted = flat[order]
-    last = np.ones(len(order), dtype=bool)
-    last[:-1] = flat_sorted[1:] != flat_sorted[:-1]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = flat_sorted[1:] != flat_sorted[:-1]
+    order = np.argsort(flat, kind="stable")
+    flat_sorted = np.take(flat, order)
+    del flat
+    boundary = flat_sorted[1:] != flat_sorted[:-1]
+    del flat_sorted
+    last = np.append(boundary, True)[:len(order)]       # (empty input: nothing to keep)
+    first = np.insert(boundary, 0, True)[:len(order)]
     keep = order[last]
     overlap = ~first[last]
     return row[keep], col[keep], triangle[keep], bary[keep], overlap
@@ -308,16 +393,14 @@ _EXTEND_NEIGHBOURS = [(dy, dx, 1.0 if dx and dy else 2.0)
                       for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dx or dy]
 
 
-def _shift(a, dy, dx, fill):
-    """out[y, x] = a[y + dy, x + dx] (``fill`` outside the image)."""
-    out = np.full_like(a, fill)
-    H, W = a.shape[:2]
-    ys = slice(max(0, -dy), min(H, H - dy))
-    xs = slice(max(0, -dx), min(W, W - dx))
-    yd = slice(max(0, dy), min(H, H + dy))
-    xd = slice(max(0, dx), min(W, W + dx))
-    out[ys, xs] = a[yd, xd]
-    return out
+def _four_neighbour_of(mask):
+    """(H, W) bool: pixels with a True 4-neighbour in ``mask``."""
+    four = np.zeros_like(mask)
+    four[:, :-1] |= mask[:, 1:]
+    four[:, 1:] |= mask[:, :-1]
+    four[:-1, :] |= mask[1:, :]
+    four[1:, :] |= mask[:-1, :]
+    return four
 
 
 def dilate(image, covered_mask, margin, return_mask=False):
@@ -337,21 +420,25 @@ def dilate(image, covered_mask, margin, return_mask=False):
     assigned = np.array(covered_mask, dtype=bool, copy=True)
     if assigned.shape != img.shape[:2]:
         raise ValueError(f"Mask shape {assigned.shape} does not match image shape {img.shape[:2]}")
+    H, W = assigned.shape
     for _ in range(int(margin)):
-        four = np.zeros_like(assigned)
-        for dy, dx in ((0, -1), (0, 1), (-1, 0), (1, 0)):
-            four |= _shift(assigned, dy, dx, False)
-        grow = four & ~assigned
-        if not np.any(grow):
+        grow = _four_neighbour_of(assigned) & ~assigned
+        gy, gx = np.nonzero(grow)
+        if len(gy) == 0:
             break
-        acc = np.zeros_like(img)
-        wsum = np.zeros(assigned.shape)
+        # Only the pixels that grow are computed (the ring around the islands): their weighted
+        # sums over the 8 neighbours, in the neighbours' order, outside the image adding 0.
+        acc = np.zeros((len(gy), img.shape[2]))
+        wsum = np.zeros(len(gy))
         for dy, dx, w in _EXTEND_NEIGHBOURS:
-            m = _shift(assigned, dy, dx, False)
-            acc += (w * m)[..., None] * _shift(img, dy, dx, 0.0)
+            ny, nx = gy + dy, gx + dx
+            inside = (ny >= 0) & (ny < H) & (nx >= 0) & (nx < W)
+            ny, nx = np.where(inside, ny, 0), np.where(inside, nx, 0)
+            m = assigned[ny, nx] & inside
+            acc += (w * m)[:, None] * np.where(inside[:, None], img[ny, nx], 0.0)
             wsum += w * m
-        img[grow] = acc[grow] / wsum[grow][:, None]
-        assigned |= grow
+        img[gy, gx] = acc / wsum[:, None]
+        assigned[gy, gx] = True
     out = img[..., 0] if squeeze else img
     out = out.astype(np.asarray(image).dtype if np.asarray(image).dtype.kind == "f" else np.float64)
     return (out, assigned) if return_mask else out

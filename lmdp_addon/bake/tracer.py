@@ -35,8 +35,11 @@ nearest compatible state s and cosine sampling; FINAL_GATHER draws the first dir
 and ends the path at its hit y_1 with the solution's ẑ_ind there (``gather.py``), the direct
 light at y_1 by light sampling; the hits the gather cannot serve continue as GUIDED paths.
 
-Arrays are float32 in the hot loop (positions of scenes of metres keep ~1e-7 relative precision,
-ray origins are offset by ``RayCaster.offset()``, 1e-5 of the scene size).
+Arrays are float32 in the hot loop (positions keep ~1e-7 relative precision). Hit points are
+rebuilt from the hit's barycentrics on the hit triangle, so they lie on its plane to the
+precision of its corners whatever the length of the ray, and every ray origin is offset along
+the normal by ``RayCaster.offset`` of the triangle it leaves (8 float32 ulps of the magnitude
+of the coordinates there, see ``raycast``): nothing far away changes the offsets of a room.
 """
 from dataclasses import dataclass
 
@@ -106,8 +109,12 @@ class IndirectTracer:
                            else CosineDirections())
         self.rr_start = int(rr_start)
         self.caster = caster or RayCaster(scene)
-        self.eps = np.float32(self.caster.offset())
         self.lights = EmitterSampler(scene)
+        corners = scene.corners()
+        self.corner0 = corners[:, 0].astype(np.float32)
+        self.edge1 = (corners[:, 1] - corners[:, 0]).astype(np.float32)
+        self.edge2 = (corners[:, 2] - corners[:, 0]).astype(np.float32)
+        self.offsets = self.caster.triangle_offset.astype(np.float32)
         self.face_normals = scene.triangle_geometry()[0].astype(np.float32)
         self.albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
         self.objects = scene.triangle_object
@@ -115,7 +122,7 @@ class IndirectTracer:
         self.world_lit = bool(np.any(self.world > 0))
 
     # ---- the wavefront loop ----------------------------------------------------------------------
-    def trace(self, points, normals, states, u_first, u_mix, rng):
+    def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None):
         """Estimates I(x) = E_ind/π for paths starting at ``points (n, 3)`` on surfaces with
         normals ``normals (n, 3)`` (the side that is baked).
 
@@ -123,6 +130,8 @@ class IndirectTracer:
         u_first  (n, 2) uniforms of the first direction (stratified by the caller)
         u_mix    (n,) uniforms choosing guide vs cosine at the first vertex
         rng      numpy Generator for everything else
+        triangles  (n,) scene triangle of each start point, for its ray offset (None: the
+                 largest offset of the scene, ``RayCaster.offset()``)
         Returns ``(values (n, 3) float32, TraceStats)``; the mean of the values is unbiased for
         I (biased by the solution's discretisation in FINAL_GATHER).
         """
@@ -139,12 +148,14 @@ class IndirectTracer:
         d, w, cos_prev = self.directions.sample(nrm, states, np.asarray(u_first, np.float64),
                                                 np.asarray(u_mix), first=True)
         beta = np.ones((n, 3), np.float32)
-        idx, pos, nrm, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm, d, w,
-                                                           cos_prev, beta)
+        lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
+                else np.take(self.offsets, triangles))
+        idx, pos, nrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm, lift,
+                                                                 d, w, cos_prev, beta)
         bounce = 1
         while len(idx):
             # ---- closest hits y_bounce of the sampled directions ----
-            origin = pos + self.eps * nrm
+            origin = pos + lift[:, None] * nrm
             tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
@@ -155,17 +166,19 @@ class IndirectTracer:
             # ---- the vertex y_bounce: β_k = β_{k-1} w_{k-1} ρ(y_k) ----
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
-            pos, nrm, front, beta = self._vertices(origin, d, dist, tri, w, beta)
+            pos, nrm, front, beta = self._vertices(d, tri, bu, bv, w, beta)
+            lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
             objs = self.objects[tri]
             if bounce == 1 and self.gather is not None:
-                live = self._final_gather(L, idx, pos, nrm, beta, tri, bu, bv, dist, front, objs, rng, stats)
-                idx, pos, nrm, beta, tri, bu, bv, front, objs = _select_rows(
-                    live, idx, pos, nrm, beta, tri, bu, bv, front, objs)
+                live = self._final_gather(L, idx, pos, nrm, lift, beta, tri, bu, bv, dist, front, objs, rng,
+                                          stats)
+                idx, pos, nrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
+                    live, idx, pos, nrm, lift, beta, tri, bu, bv, front, objs)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
-                idx, pos, nrm, beta, tri, bu, bv, front, objs = _select_rows(
-                    np.flatnonzero(alive), idx, pos, nrm, beta, tri, bu, bv, front, objs)
+                idx, pos, nrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
+                    np.flatnonzero(alive), idx, pos, nrm, lift, beta, tri, bu, bv, front, objs)
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
@@ -173,7 +186,7 @@ class IndirectTracer:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, nrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
-            direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster)
+            direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift)
             stats.shadow_rays += shadow_rays
             L[idx] += beta * direct
             # ---- Russian roulette ----
@@ -181,7 +194,7 @@ class IndirectTracer:
                 q = np.minimum(_channel_max(beta), 1.0)
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
-                idx, pos, nrm, vstates = _select_rows(survive, idx, pos, nrm, vstates)
+                idx, pos, nrm, lift, vstates = _select_rows(survive, idx, pos, nrm, lift, vstates)
                 if len(idx) == 0:
                     break
             # ---- the next direction ω_bounce ----
@@ -189,16 +202,18 @@ class IndirectTracer:
             d, w, cos_prev = self.directions.sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
             keep = w > 0
             if not np.all(keep):
-                idx, pos, nrm, d, w, cos_prev, beta = _select_rows(np.flatnonzero(keep), idx, pos, nrm, d, w,
-                                                                   cos_prev, beta)
+                idx, pos, nrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(keep), idx, pos, nrm,
+                                                                         lift, d, w, cos_prev, beta)
             bounce += 1
         return L, stats
 
-    def _vertices(self, origin, d, dist, tri, w, beta):
-        """The hit points y_k of rays ``origin + dist d`` on triangles ``tri``: positions, the
-        normal of the side the ray arrived on, whether that is the front, and the throughput
-        ``β_k = β_{k-1} w_{k-1} ρ(y_k)``."""
-        pos = origin + d * dist[:, None]
+    def _vertices(self, d, tri, bu, bv, w, beta):
+        """The hit points y_k of rays in directions ``d`` on triangles ``tri`` at barycentrics
+        ``(bu, bv)``: positions (``c0 + u e1 + v e2``, on the triangle to the precision of its
+        corners), the normal of the side the ray arrived on, whether that is the front, and the
+        throughput ``β_k = β_{k-1} w_{k-1} ρ(y_k)``."""
+        pos = (rows(self.corner0, tri) + bu[:, None] * rows(self.edge1, tri)
+               + bv[:, None] * rows(self.edge2, tri))
         ng = rows(self.face_normals, tri)
         front = dot(ng, d) < 0
         nrm = np.where(front[:, None], ng, -ng)
@@ -215,14 +230,15 @@ class IndirectTracer:
             lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals)
             L[idx[lit]] += rows(bw, lit) * value
 
-    def _final_gather(self, L, idx, pos, nrm, beta, tri, bu, bv, dist, front, objs, rng, stats):
+    def _final_gather(self, L, idx, pos, nrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats):
         """FINAL_GATHER at y_1: the radiance leaving it, ρ (ẑ_ind + D_e), with the direct part by
         light sampling at y_1 itself (``gather.build_gather``), ends the paths the gather serves;
         returns the rows of the others (no state near, back faces, hits too close), which go on."""
         value = self.gather.value_at(tri, bu, bv, pos, nrm, front, objs)
         done = ~np.isnan(value[:, 0]) & ~self.gather.too_close(dist, objs)
         g = np.flatnonzero(done)
-        direct, shadow_rays = self.lights.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster)
+        direct, shadow_rays = self.lights.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster,
+                                                       lift=np.take(lift, g))
         stats.shadow_rays += shadow_rays
         L[idx[g]] += rows(beta, g) * (value[g].astype(np.float32) + direct)
         stats.gathered += int(done.sum())

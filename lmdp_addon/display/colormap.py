@@ -99,7 +99,11 @@ class ColorScale:
                 quantity itself for linear scales. Values outside are clipped to the map's ends.
     log         True: position = (log10 v - lo) / (hi - lo); False: (v - lo) / (hi - lo)
     label       what is shown, for legends ("z: radiance (luminance, W/sr/m²)")
-    data_lo, data_hi  the smallest / largest finite data value (same domain as lo, hi)
+    data_lo, data_hi  the smallest / largest finite data value (same domain as lo, hi); for an
+                empty scale the one non-finite value every datum has (-inf: z = 0), else NaN
+    empty       no datum has a place on the scale (every z is 0, every J +inf): every position
+                is NaN (the missing colour), the legend shows ``note`` instead of a range
+    note        why the scale is empty, for the user ("z is 0 on every state: ...")
     """
 
     lo: float
@@ -108,6 +112,8 @@ class ColorScale:
     label: str = ""
     data_lo: float = float("nan")
     data_hi: float = float("nan")
+    empty: bool = False
+    note: str = ""
 
     @property
     def vmin(self):
@@ -120,10 +126,12 @@ class ColorScale:
 
     @property
     def decades(self):
-        """Orders of magnitude the range spans (log scales), else 0."""
-        return float(self.hi - self.lo) if self.log else 0.0
+        """Orders of magnitude the range spans (log scales), else 0 (also for an empty scale)."""
+        return float(self.hi - self.lo) if self.log and not self.empty else 0.0
 
     def _t(self, x):
+        if self.empty:
+            return np.full(np.shape(x), np.nan)
         span = self.hi - self.lo
         with np.errstate(invalid="ignore"):
             t = (x - self.lo) / span if span > 0 else np.where(np.isfinite(x), 0.5, np.nan)
@@ -145,21 +153,27 @@ class ColorScale:
         return self._t(np.asarray(log10_values, dtype=np.float64))
 
     def ticks(self, count=5):
-        """``count`` evenly spaced points of the scale's domain (log10 values for log scales)."""
+        """``count`` evenly spaced points of the scale's domain (log10 values for log scales);
+        an empty scale's ticks are all its one data value (``data_lo``)."""
+        if self.empty:
+            return np.full(count, self.data_lo)
         return self.lo + np.linspace(0.0, 1.0, count) * (self.hi - self.lo)
 
     def tick_labels(self, count=5):
         return [format_log10(x) if self.log else format_value(x) for x in self.ticks(count)]
 
     def describe(self):
-        """One line for the panel: ``label: min .. max (log, 3.2 decades)``."""
+        """One line for the panel: ``label: min .. max (log, 3.2 decades)``; the note of an
+        empty scale."""
+        if self.empty:
+            return self.note or f"{self.label}: no value to show"
         fmt = format_log10 if self.log else format_value
         kind = f"log, {self.decades:.1f} decades" if self.log else "linear"
         return f"{self.label}: {fmt(self.lo)} .. {fmt(self.hi)} ({kind})"
 
     def as_dict(self):
         return {"lo": self.lo, "hi": self.hi, "log": self.log, "label": self.label,
-                "data_lo": self.data_lo, "data_hi": self.data_hi}
+                "data_lo": self.data_lo, "data_hi": self.data_hi, "empty": self.empty, "note": self.note}
 
 
 def format_value(v):
@@ -186,8 +200,15 @@ def format_log10(x):
     return f"{m:.2f}e{e:+03d}"
 
 
+def _empty_scale(values, log, label, note):
+    """The :class:`ColorScale` of data without a finite value (see ``ColorScale.empty``)."""
+    v = values[~np.isnan(values)]
+    data = float(v[0]) if v.size and np.all(v == v[0]) else float("nan")
+    return ColorScale(0.0, 1.0, log, label, data, data, empty=True, note=note)
+
+
 def log_scale_from_log10(log10_values, label="", low_percentile=1.0, high_percentile=99.0,
-                         max_decades=None):
+                         max_decades=None, empty_note=""):
     """Log :class:`ColorScale` for data given as log10 values (-inf for zeros).
 
     The range runs from the ``low_percentile`` to the ``high_percentile`` percentile of the
@@ -196,12 +217,13 @@ def log_scale_from_log10(log10_values, label="", low_percentile=1.0, high_percen
     colours; ``data_lo`` / ``data_hi`` keep the full extent for the legend. With
     ``max_decades`` the range spans at most that many decades below its top. (In THESIS mode z
     falls by e^-λ per bounce, so its range can span hundreds of decades: no cap by default.)
-    A constant field gets a range of half a decade around it.
+    A constant field gets a range of half a decade around it; data without a finite value (z =
+    0 everywhere) an empty scale whose legend is ``empty_note``.
     """
     x = np.asarray(log10_values, dtype=np.float64).reshape(-1)
+    if not np.any(np.isfinite(x)):
+        return _empty_scale(x, True, label, empty_note)
     x = x[np.isfinite(x)]
-    if x.size == 0:
-        return ColorScale(0.0, 1.0, True, label)
     lo, hi = (float(v) for v in np.percentile(x, [low_percentile, high_percentile]))
     if max_decades is not None:
         lo = max(lo, hi - float(max_decades))
@@ -210,13 +232,14 @@ def log_scale_from_log10(log10_values, label="", low_percentile=1.0, high_percen
     return ColorScale(lo, hi, True, label, float(x.min()), float(x.max()))
 
 
-def linear_scale(values, label="", low_percentile=0.0, high_percentile=100.0):
+def linear_scale(values, label="", low_percentile=0.0, high_percentile=100.0, empty_note=""):
     """Linear :class:`ColorScale` from the ``low_percentile`` to the ``high_percentile``
-    percentile of the finite values (a constant field gets ±0.5 around it)."""
+    percentile of the finite values (a constant field gets ±0.5 around it; data without a
+    finite value an empty scale whose legend is ``empty_note``)."""
     v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if not np.any(np.isfinite(v)):
+        return _empty_scale(v, False, label, empty_note)
     v = v[np.isfinite(v)]
-    if v.size == 0:
-        return ColorScale(0.0, 1.0, False, label)
     lo, hi = (float(x) for x in np.percentile(v, [low_percentile, high_percentile]))
     data = (float(v.min()), float(v.max()))
     if hi - lo <= 1e-12 * max(abs(hi), 1.0):

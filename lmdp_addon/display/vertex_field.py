@@ -44,6 +44,9 @@ SMOOTHING = 0.75
 #: Residuals below this are shown as this (an exact state has residual 0; log10(0) = -inf).
 RESIDUAL_FLOOR = 1e-16
 QUANTITIES = ("Z", "COST_TO_GO", "RESIDUAL")
+#: The legend of a quantity that no state has a finite value of.
+NO_LIGHT_NOTE = ("{} on every state: no light reaches them (an emitter facing away, or "
+                 "blocked?); shown in the missing colour (grey)")
 
 
 @dataclass
@@ -214,7 +217,9 @@ def state_quantity(solution, quantity="Z", residuals=None):
     scale over the 1st-99th percentile of the states. COST_TO_GO: J = -(ln z)/λ of the scalar z
     (design.md's convention), linear scale over the 1st-99th percentile. RESIDUAL:
     ``residuals (m,)`` from :func:`lmdp_addon.model.solvers.state_residuals` (relative |z - QPz|/z per
-    state), log scale over the full range, floored at 1e-16.
+    state), log scale over the full range, floored at 1e-16. Where no state has a finite value
+    (z = 0 everywhere) the scale is empty (``ColorScale.empty``): every colour is the missing
+    one and the legend says why (:data:`NO_LIGHT_NOTE`).
     """
     if quantity not in QUANTITIES:
         raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, not {quantity!r}")
@@ -232,10 +237,11 @@ def state_quantity(solution, quantity="Z", residuals=None):
     if quantity == "Z":
         label = "z: radiance (luminance, W/sr/m²)" if physical else "z: desirability"
         value = log10_z
-        scale = log_scale_from_log10(value, label)
+        scale = log_scale_from_log10(value, label, empty_note=NO_LIGHT_NOTE.format("z is 0"))
     elif quantity == "COST_TO_GO":
         value = -ln_scalar / lam
-        scale = linear_scale(value, f"J = -(ln z)/λ (λ = {lam:.4g})", 1.0, 99.0)
+        scale = linear_scale(value, f"J = -(ln z)/λ (λ = {lam:.4g})", 1.0, 99.0,
+                             empty_note=NO_LIGHT_NOTE.format("J is +inf (z = 0)"))
     else:
         if residuals is None:
             raise ValueError("the RESIDUAL quantity needs the per-state residuals")

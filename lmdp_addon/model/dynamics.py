@@ -249,7 +249,7 @@ class _DynamicsBuild:
         states = self.states
         self.caster = caster = caster or RayCaster(self.scene)
         # Every ray leaves through the upper hemisphere of its point: offset along the normal.
-        self.lifted64 = states.points + caster.offset() * states.normals
+        self.lifted64 = caster.lift(states.points, states.normals, states.point_triangle)
         self.lifted = self.lifted64.astype(np.float32)
         self.buried = buried_points(caster, states, self.lifted)
         buried_known.set_result(self.buried)
@@ -380,8 +380,9 @@ class _DynamicsBuild:
         live = np.flatnonzero((cos_x > 0) & (cos_y > 0) & ~self.buried[ids][:, None])
         owner = live // K
         omega_live = omega.reshape(-1, 3)[live]
+        target = np.take(self.sampler.triangles, tri_index.reshape(-1)[live])
         blocked = caster.occluded(self.lifted[ids][owner], omega_live,
-                                  np.maximum(dist.reshape(-1)[live] - caster.offset(), 0.0))
+                                  caster.shadow_distance(dist.reshape(-1)[live], target))
         live, owner = live[~blocked], owner[~blocked]
         k = np.maximum(stratum_of_local_direction(local.reshape(-1, 3)[live], states.strata_u,
                                                   states.strata_v), 0)

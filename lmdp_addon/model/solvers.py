@@ -11,6 +11,7 @@ and ``log z = log y - δ`` stays exact where z itself underflows float64.
 * ``DIRECT``    sparse LU of ``(I - Q_NN P_NN) z_N = Q_NN P_NT z_T``.
 * ``ITERATIVE`` restarted GMRES with a Jacobi preconditioner, started from a few power
                 iterations; if it stalls, the power iteration continues from its iterate.
+                ``max_iterations`` caps all of it together (per channel).
 """
 import time
 from dataclasses import dataclass, field
@@ -161,6 +162,9 @@ def solve_desirability(lmdp, solver="ITERATIVE", tolerance=1e-8, max_iterations=
         raise SceneError(f"Unknown solver {solver!r}: use one of {', '.join(SOLVERS)}")
     if not (tolerance > 0):
         raise SceneError(f"Tolerance must be positive (got {tolerance})")
+    if int(max_iterations) < 1 and solver != "DIRECT":
+        raise SceneError(f"Max iterations must be at least 1 (got {max_iterations}): set LMDP > "
+                         "Solve > Max Iterations")
     t0 = time.perf_counter()
     S, q, b, delta, c_bar, reachable = rescaled_system(lmdp, dtype=dtype)
     m, C = q.shape
@@ -269,7 +273,16 @@ def _direct(S, q, b, reachable, progress, memory_budget_gb=None):
 
 
 def _iterative(S, q, b, delta, reachable, tolerance, max_iterations, seed, progress):
-    """GMRES(restart) with Jacobi preconditioning on the reachable block, power fallback."""
+    """GMRES(restart) with Jacobi preconditioning on the reachable block, power fallback.
+
+    ``max_iterations`` caps the iterations of every channel's solve, all stages together: the
+    warm-start power iterations, then at most the rest as GMRES inner iterations (restart
+    cycles are shortened to fit), then the power fallback with whatever is left. Returns
+    ``(y, iterations, converged, history, history_rel, message)``; ``iterations`` is the warm
+    start plus the most GMRES iterations any channel took plus the fallback's, and
+    ``converged`` says whether the true residual reached the tolerance within the cap.
+    """
+    cap = int(max_iterations)
     idx = np.flatnonzero(reachable)
     Sr = S[idx][:, idx]
     m, C = q.shape
@@ -277,14 +290,54 @@ def _iterative(S, q, b, delta, reachable, tolerance, max_iterations, seed, progr
     # Warm start: a few power iterations from the thesis's random initial values.
     rng = np.random.default_rng(seed)
     y[idx] = rng.random((len(idx), C))
-    warm = min(8, int(max_iterations))
-    y, used, _, history, history_rel = _power(S, q, b, y, delta, 0.0, warm, None)
-    iterations = used
-    converged_all = True
+    y, iterations, _, history, history_rel = _power(S, q, b, y, delta, 0.0, min(8, cap), None)
+    budget = cap - iterations
+    converged_all = budget > 0
     message = ""
-    budget = max(int(max_iterations) - used, 1)
+    if budget > 0:
+        used, converged_all = _gmres_channels(S, Sr, q, b, y, idx, tolerance, budget, progress)
+        iterations += used
+    remaining = cap - iterations
+    if not converged_all and remaining > 0:
+        # GMRES stalled: continue with the power iteration from its iterate (fallback).
+        y, used, converged_all, history, history_rel = _power(S, q, b, y, delta, tolerance, remaining,
+                                                              progress, history, history_rel)
+        iterations += used
+        message = "GMRES did not reach the tolerance; continued with the power iteration"
+    # Verify against the true residual (GMRES's own estimate is preconditioned).
+    threshold = max(10 * tolerance, 1e3 * np.finfo(S.dtype).eps)
+    rel = _relative_residual(S, q, b, y)
+    remaining = cap - iterations
+    if rel > threshold and converged_all and remaining > 0:
+        y, used, converged_all, history, history_rel = _power(S, q, b, y, delta, tolerance, remaining,
+                                                              progress, history, history_rel)
+        iterations += used
+        rel = _relative_residual(S, q, b, y)
+    if iterations >= cap and not converged_all:
+        # The cap cut a stage short: the true residual decides.
+        converged_all = rel <= threshold
+        if not converged_all:
+            message = (f"stopped at the cap of {cap} iteration{'s' if cap != 1 else ''} (Max Iterations) "
+                       f"with relative residual {rel:.2e} > tolerance {tolerance:g}")
+    return y, iterations, converged_all, history, history_rel, message
+
+
+def _relative_residual(S, q, b, y):
+    """``||y - (A y + b)||_∞ / ||y||_∞`` of the rescaled system."""
+    r = y - (_apply(S, q, y) + b)
+    return float(np.abs(r).max() / max(float(np.abs(y).max()), 1e-300))
+
+
+def _gmres_channels(S, Sr, q, b, y, idx, tolerance, budget, progress):
+    """Restarted GMRES of every channel on the reachable block, at most ``budget`` inner
+    iterations each; writes the solutions into ``y``. Returns ``(the most iterations any
+    channel took, every channel reached the tolerance)``."""
+    m, C = q.shape
     diag = Sr.diagonal()
     identity = sp.identity(len(idx), format="csr", dtype=S.dtype)
+    restart = min(60, budget)
+    cycles = budget // restart          # restart x cycles <= budget inner iterations
+    most, converged_all = 0, True
     for c in range(C):
         A = identity - sp.diags(q[idx, c]) @ Sr
         precond = sp.diags(1.0 / np.maximum(1.0 - q[idx, c] * diag, 1e-12))
@@ -296,29 +349,11 @@ def _iterative(S, q, b, delta, reachable, tolerance, max_iterations, seed, progr
                 progress.update((c + min(count[0] / budget, 1.0)) / C,
                                 f"GMRES channel {c + 1}/{C}, iteration {count[0]}")
 
-        restart = 60
         sol, info = spla.gmres(A, b[idx, c], x0=y[idx, c], rtol=tolerance, atol=0.0,
-                               restart=restart, maxiter=max(1, budget // restart), M=precond,
+                               restart=restart, maxiter=cycles, M=precond,
                                callback=callback, callback_type="pr_norm")
         y[idx, c] = sol
-        iterations += count[0]
+        most = max(most, count[0])
         if info != 0:
             converged_all = False
-    if not converged_all:
-        # GMRES stalled: continue with the power iteration from its iterate (fallback).
-        remaining = max(int(max_iterations) - iterations, 1)
-        y, used, conv, history, history_rel = _power(S, q, b, y, delta, tolerance, remaining,
-                                                     progress, history, history_rel)
-        iterations += used
-        converged_all = conv
-        message = "GMRES did not reach the tolerance; continued with the power iteration"
-    # Verify against the true residual (GMRES's own estimate is preconditioned).
-    r = y - (_apply(S, q, y) + b)
-    rel = float(np.abs(r).max() / max(float(np.abs(y).max()), 1e-300))
-    if rel > max(10 * tolerance, 1e3 * np.finfo(S.dtype).eps) and converged_all:
-        y, used, conv, history, history_rel = _power(S, q, b, y, delta, tolerance,
-                                                     max(int(max_iterations) - iterations, 1),
-                                                     progress, history, history_rel)
-        iterations += used
-        converged_all = conv
-    return y, iterations, converged_all, history, history_rel, message
+    return most, converged_all
