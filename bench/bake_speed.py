@@ -131,7 +131,7 @@ def raw_embree_rate(scene, n=1 << 19, repeats=3):
     c = scene.corners()[tri]
     u = np.sqrt(rng.random(n))[:, None]
     v = rng.random(n)[:, None]
-    p = (1 - u) * c[:, 0] + u * (1 - v) * c[:, 1] + u * v * c[:, 2] + caster.offset() * normals[tri]
+    p = (1 - u) * c[:, 0] + u * (1 - v) * c[:, 1] + u * v * c[:, 2] + caster.offset(tri)[:, None] * normals[tri]
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     d *= np.sign(np.einsum("ij,ij->i", d, normals[tri]))[:, None]

@@ -182,7 +182,7 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
     )
     memory_budget_gb: FloatProperty(
         name="Memory Budget",
-        description="Refuse to build problems whose estimated memory exceeds this (GiB)",
+        description="Refuse to build or bake problems whose estimated memory exceeds this (GiB)",
         default=_DEFAULTS.memory_budget_gb, min=0.01, max=4096.0, soft_max=64.0, precision=2,
     )
 

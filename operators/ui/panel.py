@@ -91,6 +91,12 @@ def draw_legend(layout, record):
     box = layout.box()
     scale = record.scale
     box.label(text=scale.label, icon='COLOR')
+    if scale.empty:     # nothing to map: say why instead of drawing a made-up range
+        box.label(text=scale.describe(), icon='INFO')
+        box.label(text=record.summary() + f", {format_seconds(record.seconds)}")
+        for message in record.skipped[:3]:
+            box.label(text=f"Skipped {message}", icon='ERROR')
+        return
     column = box.column(align=True)
     labels = scale.tick_labels(LEGEND_STEPS)
     for i in reversed(range(LEGEND_STEPS)):

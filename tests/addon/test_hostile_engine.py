@@ -149,3 +149,5 @@ def test_a_desirability_that_is_0_everywhere_has_an_honest_legend(fresh_scene, l
     texts = []
     lmdp_ext.sub("operators.ui.panel").draw_legend(Layout(texts), record)
     assert not any("1 .. 10" in t or t.startswith("1  (") or t.startswith("10  (") for t in texts), texts
+    assert any("z is 0" in t for t in texts), texts
+    assert not any("decades" in t or t.startswith("States:") for t in texts), texts
