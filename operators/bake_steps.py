@@ -1,14 +1,17 @@
 """The three steps of a bake, shared by ``lmdp.bake`` and ``lmdp.run_pipeline`` (Run All).
 
 * :func:`bake_inputs` (main thread): capture the current scene (``extract_scene``) and run every
-  check of the bake once, before any work (``lmdp_addon.bake.checks.check_bake``: UV maps,
-  overlapping UVs, resolution, light, the solution GUIDED / FINAL_GATHER need), objects the bake
-  could not tell apart (a linked and a local object of the same name), an output folder that can
-  be used, and a material hook-up that would not edit library data; the resulting ``BakePlan``
-  carries the texels it rasterised. :func:`planned_bake_inputs` does the same for Run All, which
-  captures the scene itself and solves it before baking.
-* :func:`compute_bake` (no bpy; a worker thread in the UI, Esc cancels between work units):
-  ``lmdp_addon.bake.driver.bake`` with the plan, so nothing is checked or rasterised twice.
+  check of the bake once, before any work (``lmdp_addon.bake.checks.check_bake``: UV maps and
+  their values, resolution, memory, light, the solution GUIDED / FINAL_GATHER need), objects the
+  bake could not tell apart (a linked and a local object of the same name), an output folder that
+  can be used, and a material hook-up that would not edit library data. Only the texel checks
+  (coverage, overlapping UVs), which rasterise every object and take seconds at 1024² and up, are
+  left to the worker, where the progress shows them and Esc cancels them.
+  :func:`planned_bake_inputs` does the same for Run All, which captures the scene itself and
+  solves it before baking (it runs :func:`check_bake_texels` before it samples).
+* :func:`compute_bake` (no bpy; a worker thread in the UI, Esc cancels between objects and work
+  units): ``lmdp_addon.bake.driver.bake`` with the plan (its texel checks first, then the bake
+  with the texels they rasterised), so nothing is checked or rasterised twice.
 * :func:`apply_bake` (main thread, after success only): the lightmaps into images and files
   (:mod:`.adapters.lightmaps`), the optional material hook-up (:mod:`.adapters.materials`) and
   the session's ``bake`` stage.
@@ -22,7 +25,7 @@ from dataclasses import dataclass, field
 import bpy
 
 from ..lmdp_addon.bake import driver
-from ..lmdp_addon.bake.checks import check_bake
+from ..lmdp_addon.bake.checks import check_bake, check_texels
 from ..lmdp_addon.errors import SceneError
 from .adapters.extract import extract_scene
 from .adapters.lightmaps import prepare_output_folder, write_lightmaps
@@ -83,7 +86,7 @@ def bake_inputs(context, settings, hook_up="NONE"):
     scene = extract_scene(context, meshes)
     check_distinct_names(context, scene, meshes)
     lmdp = session_for(context.scene).result if settings.bake_mode != "UNGUIDED" else None
-    plan = check_bake(scene, [obj.name for obj in meshes], settings, lmdp)
+    plan = check_bake(scene, [obj.name for obj in meshes], settings, lmdp, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
     return BakeInputs(scene=scene, plan=plan, lmdp=lmdp, warnings=list(scene.warnings) + list(plan.warnings),
@@ -96,10 +99,20 @@ def planned_bake_inputs(context, scene, names, settings, hook_up="NONE"):
     that result). Checks everything the bake can check before the solution exists."""
     meshes = [obj for obj in selected_meshes(context) if obj.name in set(names)]
     check_distinct_names(context, scene, meshes)
-    plan = check_bake(scene, names, settings, will_solve=True)
+    plan = check_bake(scene, names, settings, will_solve=True, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
     return BakeInputs(scene=scene, plan=plan, warnings=list(plan.warnings), keys=object_keys(meshes))
+
+
+def check_bake_texels(inputs, progress):
+    """No bpy: the texel checks the main thread left out (they rasterise every object; here the
+    progress reports them and Esc cancels them). Run All calls this before it samples, so a UV
+    problem stops it before the long stages; :func:`compute_bake` needs no call (the driver runs
+    them first when they are still due)."""
+    progress.begin("texels")
+    check_texels(inputs.scene, inputs.plan, progress)
+    progress.end(f"{len(inputs.plan.names)} object(s) rasterised")
 
 
 def compute_bake(inputs, settings, progress):

@@ -36,6 +36,9 @@ class BakePlan:
                 objects the check rasterised, up to :data:`TEXEL_CACHE_LIMIT` texels in all
     warnings    messages for the user (the bake goes on)
     memory_bytes  the bake's estimated peak memory (``memory.estimate_bake_bytes``)
+    texels_checked  False while the texel checks (coverage, overlapping UVs: they rasterise every
+                object) are still to run: :func:`check_texels` runs them, and ``driver.bake``
+                does when given such a plan, where the progress can report and cancel them
     """
 
     names: list
@@ -44,6 +47,7 @@ class BakePlan:
     texels: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     memory_bytes: int = 0
+    texels_checked: bool = True
 
 
 def object_index(scene, name):
@@ -101,7 +105,7 @@ def scene_fingerprint(scene):
     return h.hexdigest()
 
 
-def check_bake(scene, names, settings, lmdp=None, will_solve=False):
+def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=True):
     """Check a bake of the objects ``names`` of ``scene`` before any work; returns its :class:`BakePlan`.
 
     Checks, in order: the mode, resolution, samples and bounces >= 1, a selection, every object
@@ -110,7 +114,10 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
     has no overlapping UVs, the scene has light,
     GUIDED / FINAL_GATHER have a solution and FINAL_GATHER a PHYSICAL one of this very scene.
     ``will_solve``: the caller solves this scene with ``settings`` before baking (Run All), so
-    only the cost mode is checked. Each object is rasterised once.
+    only the cost mode is checked. Each object is rasterised once. ``rasterise=False`` leaves the
+    texel checks (the only slow ones: coverage and overlapping UVs) to :func:`check_texels`, so a
+    caller on Blender's main thread can run them where they report progress and can be cancelled
+    (the operators: in the worker, before any tracing).
     """
     names = list(names)
     R = _check_settings(settings, names)
@@ -121,7 +128,7 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
                          "Lightmap Pack) or deselect them; the lightmap is laid out by the UV map")
     _check_uv_values(scene, names, indices, R)
     memory = check_bake_memory(scene, names, indices, settings)
-    texels = _check_texels(scene, names, indices, R)
+    texels = _check_texels(scene, names, indices, R) if rasterise else {}
     if not scene.has_light():
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
                          "shader or Principled emission), an area light, or a non-black world")
@@ -130,7 +137,18 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False):
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
                         "the optimal policy is zero; a value below 1 keeps it unbiased")
     return BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings,
-                    memory_bytes=memory)
+                    memory_bytes=memory, texels_checked=bool(rasterise))
+
+
+def check_texels(scene, plan, progress=None):
+    """Run the texel checks :func:`check_bake` left to later (``rasterise=False``) on ``plan``:
+    every object is rasterised once, with ``progress.update`` (which raises ``Cancelled`` when the
+    user asked to stop) before each object. Raises :class:`SceneError` for objects that cover no
+    texel or have overlapping UVs; otherwise fills ``plan.texels`` and returns ``plan``."""
+    if not plan.texels_checked:
+        plan.texels = _check_texels(scene, plan.names, plan.indices, plan.resolution, progress)
+        plan.texels_checked = True
+    return plan
 
 
 def _check_settings(settings, names):
@@ -150,12 +168,14 @@ def _check_settings(settings, names):
     return R
 
 
-def _check_texels(scene, names, indices, R):
+def _check_texels(scene, names, indices, R, progress=None):
     """Rasterise every object once: objects that cover no texel or have overlapping UVs are
     errors. Returns the texels kept for the bake (:data:`TEXEL_CACHE_LIMIT`)."""
     texels, kept = {}, 0
     empty, overlapping = [], []
-    for n, i in zip(names, indices):
+    for k, (n, i) in enumerate(zip(names, indices)):
+        if progress is not None:
+            progress.update(k / len(names), f"texels of {n}")
         found = object_texels(scene, i, R)
         ts, _ = found
         if kept + len(ts) <= TEXEL_CACHE_LIMIT:

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
-from .checks import check_bake, object_index, object_texels
+from .checks import check_bake, check_texels, object_index, object_texels
 from .gather import build_gather
 from .guide import build_guide
 from .results import IMAGE_SUFFIX, BakeResult, ObjectBake
@@ -239,8 +239,9 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     precompute_seconds  {'sample', 'build', 'solve'} wall times to report with the bake
     threads   work units in flight
     plan      the :class:`~lmdp_addon.bake.checks.BakePlan` of ``checks.check_bake`` for these
-              arguments: no check runs again and its texels are used; None: :func:`check_bake`
-              runs here once
+              arguments: no check runs again and its texels are used (a plan whose texel checks
+              are still to run gets them here first: ``checks.check_texels``, a "texels" step
+              that reports progress and can be cancelled); None: :func:`check_bake` runs here once
     Returns :class:`BakeResult`. Raises the errors of :func:`check_bake`, or ``Cancelled``.
     """
     with scene.held():
@@ -252,6 +253,10 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
 def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan):
     """:func:`bake` with the scene's derived geometry held and its plan."""
     progress = progress if progress is not None else Progress()
+    if not plan.texels_checked:
+        progress.begin("texels")
+        check_texels(scene, plan, progress)
+        progress.end(f"{len(plan.names)} object(s) rasterised at {plan.resolution} x {plan.resolution}")
     t0 = time.perf_counter()
     tracer, guide, info = make_tracer(scene, settings, lmdp)
     setup = time.perf_counter() - t0

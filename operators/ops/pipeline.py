@@ -20,7 +20,7 @@ from ...lmdp_addon.model.export import export_npz
 from ..adapters.extract import extract_scene
 from ..adapters.lightmaps import resolve_output_folder
 from ..adapters.materials import HOOK_UP_ITEMS
-from ..bake_steps import apply_bake, compute_bake, planned_bake_inputs
+from ..bake_steps import apply_bake, check_bake_texels, compute_bake, planned_bake_inputs
 from ..common import report_error, report_warnings, selected_meshes
 from ..jobs import EngineJob, ready
 from ..properties import BLEND_RELATIVE_PATH
@@ -174,12 +174,15 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
     def prepare(self, context):
         scene, names = capture_scene(context)
         pipeline.check_build(scene, self.settings)
-        # Every bake check runs now, before any work (a mesh without UV map is reported here).
+        # Every bake check runs now, before any work (a mesh without UV map is reported here),
+        # except the texel checks, which rasterise every object: the worker runs them first.
         bake = planned_bake_inputs(context, scene, names, self.settings, self.hook_up) if self.bake else None
         return scene, names, bake
 
     def compute(self, inputs, settings, progress):
         scene, names, bake = inputs
+        if bake is not None:
+            check_bake_texels(bake, progress)
         result = pipeline.run_all(scene, settings, progress, check=False)
         baked = compute_bake(replace(bake, lmdp=result), settings, progress) if bake is not None else None
         return names, result, baked

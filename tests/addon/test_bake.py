@@ -252,6 +252,37 @@ def test_cancelled_bake_leaves_the_previous_image_untouched(cornell, lmdp_ext):
     np.testing.assert_array_equal(pixels(bpy.data.images["Floor_lmdp_indirect"]), previous)
 
 
+
+def test_the_main_thread_rasterises_nothing_and_esc_stops_the_texel_checks(cornell, lmdp_ext, monkeypatch):
+    """Issue 22, class 11: the texel checks (every object rasterised: seconds at 1024²) do not run
+    on the main thread, where Esc cannot reach them, but first thing in the worker, where the
+    progress reports them and a cancel stops them before the next object."""
+    checks = lmdp_ext.sub("lmdp_addon.bake.checks")
+    calls = []
+    original = checks.rasterize_texels
+    monkeypatch.setattr(checks, "rasterize_texels", lambda *a, **k: calls.append(1) or original(*a, **k))
+    meshes = [o.name for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"]
+    only(*meshes)
+    bake_steps = lmdp_ext.sub("operators.bake_steps")
+    jobs = lmdp_ext.sub("operators.jobs")
+    settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
+    settings.bake_resolution = 64
+    inputs = bake_steps.bake_inputs(bpy.context, settings)
+    assert calls == []                          # prepare: every other check, no rasterisation
+    runner = jobs.JobRunner(bake_steps.compute_bake, inputs, settings, name="bake test")
+    runner.cancel()                             # Esc as the worker starts
+    runner.start()
+    assert runner.wait(60)
+    with pytest.raises(lmdp_ext.sub("lmdp_addon.errors").Cancelled):
+        runner.outcome()
+    assert calls == []                          # stopped before the first object
+    assert "Floor_lmdp_indirect" not in bpy.data.images
+    settings.bake_samples = 1
+    inputs = bake_steps.bake_inputs(bpy.context, settings)
+    bake_steps.compute_bake(inputs, settings, lmdp_ext.sub("lmdp_addon.progress").Progress())
+    assert len(calls) == len(meshes)            # once per object, in the worker
+
+
 def test_multiply_hook_up_and_its_removal(cornell):
     only("Floor")
     mat = bpy.data.objects["Floor"].material_slots[0].material

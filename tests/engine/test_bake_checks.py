@@ -7,8 +7,9 @@ from lmdp_addon import demo_geometry as scenes
 from lmdp_addon.bake import checks, driver
 from lmdp_addon.bake.checks import check_bake
 from lmdp_addon.bake.texels import rasterize_texels
-from lmdp_addon.errors import SceneError, StageOrderError
+from lmdp_addon.errors import Cancelled, SceneError, StageOrderError
 from lmdp_addon.model import pipeline
+from lmdp_addon.progress import Progress
 from lmdp_addon.settings import Settings
 
 
@@ -80,6 +81,48 @@ def test_a_bake_given_its_plan_checks_nothing_again(cornell, monkeypatch):
 
 
 # -- bad input ---------------------------------------------------------------------------------------
+
+
+class _StopAfterRasterising(Progress):
+    """Asks to stop once ``calls`` holds ``after`` rasterisations (Esc during the texel checks)."""
+
+    def __init__(self, calls, after):
+        super().__init__()
+        self.calls, self.after = calls, after
+
+    def should_cancel(self):
+        return len(self.calls) >= self.after
+
+
+def test_texel_checks_wait_for_the_worker_and_cancel_between_objects(cornell, monkeypatch):
+    """Issue 22, class 11: the operators' main-thread check rasterises nothing (check_bake with
+    rasterise=False); the bake runs the texel checks first, as a step whose progress can cancel
+    them between objects, and bakes the same lightmaps from the texels they rasterised."""
+    calls = []
+    original = checks.rasterize_texels
+    monkeypatch.setattr(checks, "rasterize_texels", lambda *a, **k: calls.append(1) or original(*a, **k))
+    names = scenes.state_part_names("CORNELL_BOX")
+    settings = small(seed=2)
+    plan = check_bake(cornell, names, settings, rasterise=False)
+    assert calls == [] and not plan.texels_checked and plan.texels == {}
+    with pytest.raises(Cancelled):
+        driver.bake(cornell, names, settings, progress=_StopAfterRasterising(calls, 1), plan=plan)
+    assert len(calls) == 1                      # stopped after the first object, nothing baked
+    calls.clear()
+    plan = check_bake(cornell, names, settings, rasterise=False)
+    deferred = driver.bake(cornell, names, settings, plan=plan)
+    assert len(calls) == len(names) and plan.texels_checked
+    checked = driver.bake(cornell, names, settings)
+    for a, b in zip(checked.objects, deferred.objects):
+        np.testing.assert_array_equal(a.image, b.image)
+
+
+def test_deferred_texel_checks_raise_the_same_errors(cornell):
+    scene = overlapping(cornell, "TallBox")
+    plan = check_bake(scene, ["Floor", "TallBox"], small(), rasterise=False)
+    with pytest.raises(SceneError, match="Overlapping UVs on TallBox"):
+        checks.check_texels(scene, plan)
+
 
 def test_bad_resolution_samples_and_bounces(cornell):
     with pytest.raises(SceneError, match="resolution must be at least 1"):
