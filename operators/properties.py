@@ -159,7 +159,7 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
     )
     guide_fraction: FloatProperty(
         name="Guide Fraction",
-        description="GUIDED mode: probability of drawing a direction from the optimal policy u* "
+        description="GUIDED and FINAL_GATHER: probability of drawing a direction from the optimal policy u* "
                     "instead of cosine sampling (probability, 0..1)",
         default=_DEFAULTS.guide_fraction, min=0.0, max=1.0, subtype='FACTOR',
     )

@@ -309,7 +309,7 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         column.prop(props, "bake_samples")
         column.prop(props, "bake_margin")
         row = layout.row()
-        row.active = props.bake_mode == 'GUIDED'
+        row.active = props.bake_mode in ('GUIDED', 'FINAL_GATHER')   # both draw their first bounce from u*
         row.prop(props, "guide_fraction")
         layout.prop(props, "max_bounces")
         layout.prop(props, "output_dir")
