@@ -3,11 +3,14 @@
 Operators copy ``scene.lmdp`` into a :class:`Settings` (``Settings.from_mapping``) and pass it to
 the engine; scripts and tests build one directly.
 """
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 COST_MODES = ("THESIS", "PHYSICAL")
 SOLVERS = ("POWER", "DIRECT", "ITERATIVE")
 BAKE_MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
+#: Where the bake's path length comes from (``scene.lmdp.light_paths``): the scene's Cycles
+#: Light Paths, or ``Settings.max_bounces``.
+LIGHT_PATHS = ("SCENE", "CUSTOM")
 
 
 @dataclass
@@ -33,7 +36,8 @@ class Settings:
     bake_samples: int = 64            #: paths per texel
     bake_margin: int = 16             #: texels of dilation around UV islands (like Cycles)
     guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
-    max_bounces: int = 8              #: path length cap of the tracer (Russian roulette after 3)
+    max_bounces: int = 8              #: path length N of the tracer (Russian roulette after 3);
+                                      #: the Blender layer puts LightPaths.path_length here
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
@@ -57,3 +61,70 @@ class Settings:
 
     def as_dict(self):
         return asdict(self)
+
+
+@dataclass(frozen=True)
+class LightPaths:
+    """The path length a bake uses and where it comes from (``bake_stats.json`` "light_paths").
+
+    ``SCENE``: the scene's Cycles Light Paths, as Cycles' own bake follows them. Cycles stops a
+    path after the vertex whose bounce count reaches ``max_bounces`` or whose diffuse bounce count
+    reaches ``diffuse_bounces`` (``path_state_next``, both limits + 1 in the kernel); the engine
+    only makes diffuse bounces, so its path length is N = min(max_bounces, diffuse_bounces)
+    (measured against Cycles' bakes: docs/design.md). Glossy and transmission bounces never
+    occur in the engine, and Transparent surfaces absorb there, so ``glossy_bounces`` and
+    ``transparent_max_bounces`` are recorded only. ``clamp_indirect`` (Cycles'
+    ``sample_clamp_indirect``) is never applied: the engine's value is the unclamped one.
+    ``CUSTOM``: N = ``Settings.max_bounces``.
+    """
+
+    source: str                              #: 'SCENE' or 'CUSTOM'
+    path_length: int                         #: N, the tracer's max_bounces
+    max_bounces: int = None                  #: SCENE: Cycles' Max Bounces (Total)
+    diffuse_bounces: int = None              #: SCENE: Cycles' Diffuse bounces
+    glossy_bounces: int = None               #: SCENE: Cycles' Glossy bounces (recorded)
+    transparent_max_bounces: int = None      #: SCENE: Cycles' Transparent bounces (recorded)
+    clamp_indirect: float = 0.0              #: SCENE: Cycles' indirect clamp (not applied)
+
+    @classmethod
+    def from_cycles(cls, max_bounces, diffuse_bounces, glossy_bounces=None, transparent_max_bounces=None,
+                    clamp_indirect=0.0):
+        """The light paths of a scene whose Cycles settings have these values."""
+        n = max(0, min(int(max_bounces), int(diffuse_bounces)))
+        opt = (lambda v: None if v is None else int(v))
+        return cls("SCENE", n, int(max_bounces), int(diffuse_bounces), opt(glossy_bounces),
+                   opt(transparent_max_bounces), float(clamp_indirect))
+
+    @classmethod
+    def custom(cls, max_bounces):
+        return cls("CUSTOM", int(max_bounces))
+
+    @property
+    def clamp_ignored(self):
+        """The scene asks Cycles to clamp indirect light and the engine does not."""
+        return self.source == "SCENE" and self.clamp_indirect > 0
+
+    def apply(self, settings):
+        """``settings`` with ``max_bounces`` = this path length."""
+        return replace(settings, max_bounces=self.path_length)
+
+    def warnings(self):
+        if not self.clamp_ignored:
+            return []
+        return [f"The scene's Cycles indirect clamp ({self.clamp_indirect:g}, Render Properties > Light Paths > "
+                "Clamping > Indirect Light) is not applied: the lightmap is the unclamped, unbiased value, "
+                "brighter than a Cycles bake that clamps; set the clamp to 0 to compare with Cycles"]
+
+    def summary(self):
+        """One line for the operator's report."""
+        if self.source == "CUSTOM":
+            return f"light paths: custom, {self.path_length} bounces"
+        clamp = f"clamp {self.clamp_indirect:g} not applied" if self.clamp_ignored else "no clamp"
+        return (f"light paths: the scene's (Cycles max {self.max_bounces}, diffuse {self.diffuse_bounces}) "
+                f"-> {self.path_length} bounces, {clamp}")
+
+    def as_dict(self):
+        d = asdict(self)
+        d["clamp_applied"] = False
+        d["clamp_ignored"] = self.clamp_ignored
+        return d

@@ -16,6 +16,12 @@
   (:mod:`.adapters.lightmaps`), the optional material hook-up (:mod:`.adapters.materials`) and
   the session's ``bake`` stage.
 
+The path length comes from the scene's Cycles Light Paths or ``scene.lmdp.max_bounces``
+(``scene.lmdp.light_paths``): the operators read ``(settings, light_paths)`` with
+``properties.bake_settings_from_scene`` and hand the :class:`~lmdp_addon.settings.LightPaths` to
+:func:`bake_inputs`, which refuses a path length of 0 and warns about an indirect clamp it does not
+apply; the result records them (``bake_stats.json`` "light_paths", the report's last words).
+
 Objects are identified by their key, ``name_full`` (the name, or "Floor [library.blend]" for a
 linked object), so a linked object never writes into the lightmap of a local namesake.
 """
@@ -47,6 +53,7 @@ class BakeInputs:
     lmdp: object = None                #: LMDPResult that guides GUIDED / FINAL_GATHER
     warnings: list = field(default_factory=list)
     keys: dict = field(default_factory=dict)  #: object name -> key (``name_full``)
+    light_paths: object = None         #: the LightPaths the bake follows (None: settings.max_bounces)
 
 
 @dataclass
@@ -55,6 +62,19 @@ class BakedLightmaps:
 
     result: object                     #: the engine's BakeResult
     keys: dict                         #: object name -> key (``name_full``)
+    light_paths: object = None         #: the LightPaths of the bake
+
+
+def check_light_paths(light_paths):
+    """Raise ``SceneError`` when the scene's Cycles Light Paths allow no diffuse bounce (Cycles'
+    indirect bake would be black); return the light paths' warnings (the indirect clamp)."""
+    if light_paths is None:
+        return []
+    if light_paths.path_length < 1:
+        raise SceneError(f"The scene's Cycles Light Paths allow no indirect diffuse light (Max Bounces "
+                         f"{light_paths.max_bounces}, Diffuse {light_paths.diffuse_bounces}): raise them "
+                         "(Render Properties > Light Paths), or set the LMDP Bake's Light Paths to Custom")
+    return light_paths.warnings()
 
 
 def _origin(obj):
@@ -78,10 +98,12 @@ def object_keys(meshes):
     return {obj.name: obj.name_full for obj in meshes}
 
 
-def bake_inputs(context, settings, hook_up="NONE"):
+def bake_inputs(context, settings, hook_up="NONE", light_paths=None):
     """Main thread: capture the scene and check the bake (raises ``LMDPError`` before any work).
 
-    GUIDED and FINAL_GATHER are guided by the session's ``LMDPResult`` as it is."""
+    GUIDED and FINAL_GATHER are guided by the session's ``LMDPResult`` as it is. ``settings``
+    carry the path length of ``light_paths`` (``properties.bake_settings_from_scene``)."""
+    path_warnings = check_light_paths(light_paths)
     meshes = selected_meshes(context)
     scene = extract_scene(context, meshes)
     check_distinct_names(context, scene, meshes)
@@ -89,20 +111,23 @@ def bake_inputs(context, settings, hook_up="NONE"):
     plan = check_bake(scene, [obj.name for obj in meshes], settings, lmdp, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
-    return BakeInputs(scene=scene, plan=plan, lmdp=lmdp, warnings=list(scene.warnings) + list(plan.warnings),
-                      keys=object_keys(meshes))
+    return BakeInputs(scene=scene, plan=plan, lmdp=lmdp,
+                      warnings=path_warnings + list(scene.warnings) + list(plan.warnings),
+                      keys=object_keys(meshes), light_paths=light_paths)
 
 
-def planned_bake_inputs(context, scene, names, settings, hook_up="NONE"):
+def planned_bake_inputs(context, scene, names, settings, hook_up="NONE", light_paths=None):
     """Main thread: the bake inputs of Run All, which has captured ``scene`` (the selected meshes
     ``names``) and will sample, build and solve it before baking (it sets ``BakeInputs.lmdp`` to
     that result). Checks everything the bake can check before the solution exists."""
+    path_warnings = check_light_paths(light_paths)
     meshes = [obj for obj in selected_meshes(context) if obj.name in set(names)]
     check_distinct_names(context, scene, meshes)
     plan = check_bake(scene, names, settings, will_solve=True, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
-    return BakeInputs(scene=scene, plan=plan, warnings=list(plan.warnings), keys=object_keys(meshes))
+    return BakeInputs(scene=scene, plan=plan, warnings=path_warnings + list(plan.warnings),
+                      keys=object_keys(meshes), light_paths=light_paths)
 
 
 def check_bake_texels(inputs, progress):
@@ -122,7 +147,9 @@ def compute_bake(inputs, settings, progress):
                          precompute_seconds=dict(lmdp.seconds) if lmdp is not None else None,
                          plan=inputs.plan)
     result.warnings = list(inputs.warnings)
-    return BakedLightmaps(result=result, keys=dict(inputs.keys))
+    if inputs.light_paths is not None:
+        result.light_paths = inputs.light_paths.as_dict()
+    return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths)
 
 
 def _objects_by_key(keys):
@@ -157,4 +184,6 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     where = f", saved to {output_dir}" if output_dir else ""
     message = (f"Baked {len(result.objects)} lightmap(s) ({result.mode}, {result.n_texels} texels x "
                f"{settings.bake_samples} samples, {rays / 1e6:.2f} M rays) in {bake_seconds:.2f} s{where}")
+    if baked.light_paths is not None:
+        message += f"; {baked.light_paths.summary()}"
     return message, warnings

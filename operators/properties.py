@@ -6,7 +6,7 @@ read them with :func:`settings_from_scene`, which returns the engine's plain ``S
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, SOLVERS, Settings
+from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, LIGHT_PATHS, SOLVERS, LightPaths, Settings
 
 _DEFAULTS = Settings()
 
@@ -39,6 +39,13 @@ BAKE_MODE_ITEMS = (
      "One guided bounce, then the PHYSICAL-mode solution's indirect light at the hit plus the "
      "direct light sampled there: fast, biased by the discretisation"),
 )
+LIGHT_PATHS_ITEMS = (
+    ("SCENE", "Scene",
+     "Follow the scene's Cycles Light Paths as Cycles' own bake does: path length = the smaller of "
+     "Max Bounces (Total) and Diffuse (bounces); Cycles' indirect clamp is not applied"),
+    ("CUSTOM", "Custom",
+     "Use Max Bounces below as the path length (bounces), whatever the scene's Cycles Light Paths"),
+)
 DISPLAY_QUANTITY_ITEMS = (
     ("Z", "Desirability z",
      "Desirability z (in PHYSICAL mode the outgoing radiance, W/sr/m^2), on a log colour scale"),
@@ -58,7 +65,7 @@ POLICY_SUBSET_ITEMS = (
 )
 
 for _items, _identifiers in ((COST_MODE_ITEMS, COST_MODES), (SOLVER_ITEMS, SOLVERS),
-                             (BAKE_MODE_ITEMS, BAKE_MODES)):
+                             (BAKE_MODE_ITEMS, BAKE_MODES), (LIGHT_PATHS_ITEMS, LIGHT_PATHS)):
     assert tuple(item[0] for item in _items) == tuple(_identifiers), "enum items out of sync with the engine"
 
 
@@ -163,9 +170,16 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
                     "instead of cosine sampling (probability, 0..1)",
         default=_DEFAULTS.guide_fraction, min=0.0, max=1.0, subtype='FACTOR',
     )
+    light_paths: EnumProperty(
+        name="Light Paths",
+        description="Where the bake's path length comes from: the scene's Cycles Light Paths "
+                    "(Render Properties > Light Paths), or Max Bounces",
+        items=LIGHT_PATHS_ITEMS, default='SCENE',
+    )
     max_bounces: IntProperty(
         name="Max Bounces",
-        description="Path length cap of the tracer; Russian roulette starts after 3 (bounces)",
+        description="Light Paths Custom: path length of the tracer, as Cycles' Max Bounces with Diffuse "
+                    "bounces at least as many; Russian roulette starts after 3 (bounces)",
         default=_DEFAULTS.max_bounces, min=1, max=1024, soft_max=64,
     )
     # -- General ------------------------------------------------------------------------------------
@@ -290,6 +304,24 @@ def settings_from_scene(scene):
             value = bpy.path.abspath(value)  # '//bakes/' is relative to the .blend file
         values[name] = value
     return Settings.from_mapping(values)
+
+
+def light_paths_from_scene(scene):
+    """The :class:`~lmdp_addon.settings.LightPaths` of a bake of ``scene``: ``scene.lmdp.light_paths``
+    'SCENE' reads the scene's Cycles Light Paths (``scene.cycles``), 'CUSTOM' ``scene.lmdp.max_bounces``."""
+    props = scene.lmdp
+    cycles = getattr(scene, "cycles", None)
+    if props.light_paths == 'CUSTOM' or cycles is None:
+        return LightPaths.custom(props.max_bounces)
+    return LightPaths.from_cycles(cycles.max_bounces, cycles.diffuse_bounces, cycles.glossy_bounces,
+                                  cycles.transparent_max_bounces, float(f"{cycles.sample_clamp_indirect:.7g}"))
+
+
+def bake_settings_from_scene(scene):
+    """``(Settings, LightPaths)`` of a bake of ``scene``: :func:`settings_from_scene` with
+    ``max_bounces`` = the path length of :func:`light_paths_from_scene`."""
+    light_paths = light_paths_from_scene(scene)
+    return light_paths.apply(settings_from_scene(scene)), light_paths
 
 
 classes = (LMDPSceneSettings,)

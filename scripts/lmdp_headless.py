@@ -13,7 +13,7 @@ It loads the extension (an installed ``bl_ext.*.lmdp_light_transport`` if there 
 this checkout through a temporary extension repository), checks every argument before any work,
 selects the meshes, runs ``bpy.ops.lmdp.run_pipeline()`` (sample, build, solve, show, bake),
 exports ``lmdp.npz`` (``lmdp.export_npz``), and writes into ``--output``: ``summary.json``
-(objects, settings, steps with timings, ``"error"``, ``"exit_status"``) and ``<name>_lmdp.blend``
+(objects, settings, the bake's light paths, steps with timings, ``"error"``, ``"exit_status"``) and ``<name>_lmdp.blend``
 (a copy of the scene with the results; the input file is never written). Bakes go to
 ``--output`` too (``scene.lmdp.output_dir``); the pictures are described in
 ``scripts/lmdp_pictures.py``, the checks of the arguments in ``scripts/lmdp_headless_checks.py``.
@@ -315,7 +315,10 @@ def run(args, output, summary, cleanup):
     objects, summary["bake"], summary["left_out"] = carrier_objects(args, extension)
     select_only(objects)
     summary["objects"] = sorted(obj.name for obj in objects)
-    summary["settings"] = submodule(extension, "operators.properties").settings_from_scene(scene).as_dict()
+    properties = submodule(extension, "operators.properties")
+    summary["settings"] = properties.settings_from_scene(scene).as_dict()
+    # The bake's path length: the scene's Cycles Light Paths, or --set light_paths=CUSTOM max_bounces.
+    summary["light_paths"] = properties.light_paths_from_scene(scene).as_dict()
     carry = "mesh carries" if len(objects) == 1 else "meshes carry"
     print(f"[LMDP] {len(objects)} {carry} the states: {', '.join(summary['objects'])}", flush=True)
     if not args.dry_run:

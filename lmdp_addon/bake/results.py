@@ -4,6 +4,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..settings import LightPaths
 from .tracer import TraceStats
 
 #: Suffix of the images the add-on writes.
@@ -59,6 +60,8 @@ class BakeResult:
     seconds: dict = field(default_factory=dict)   #: stage -> wall time: sample, build, solve, bake
     warnings: list = field(default_factory=list)
     guide_info: dict = field(default_factory=dict)
+    #: ``LightPaths.as_dict()`` of the path length used (empty: ``settings['max_bounces']``, CUSTOM)
+    light_paths: dict = field(default_factory=dict)
 
     @property
     def n_texels(self):
@@ -102,6 +105,7 @@ class BakeResult:
             "settings": dict(self.settings),
             "seconds": dict(self.seconds),
             "guide": dict(self.guide_info),
+            "light_paths": dict(self.light_paths) or LightPaths.custom(self.settings.get("max_bounces", 0)).as_dict(),
             "objects": objects,
             "warnings": list(self.warnings),
         }

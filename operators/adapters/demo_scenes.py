@@ -108,7 +108,8 @@ def _camera(kind, collection):
 
 
 def configure_cycles(scene, samples=RENDER_SAMPLES):
-    """Cycles on the CPU, fixed sample count, Standard view transform, engine-matching bounces."""
+    """Cycles on the CPU, fixed sample count, Standard view transform, engine-matching bounces, no
+    indirect clamp."""
     scene.render.engine = 'CYCLES'
     cycles = scene.cycles
     cycles.device = 'CPU'
@@ -118,6 +119,7 @@ def configure_cycles(scene, samples=RENDER_SAMPLES):
     cycles.use_denoising = False
     cycles.max_bounces = MAX_BOUNCES
     cycles.diffuse_bounces = MAX_BOUNCES
+    cycles.sample_clamp_indirect = 0.0     # unclamped: Cycles' bakes and the add-on's are the same quantity
     scene.view_settings.view_transform = 'Standard'
     scene.view_settings.look = 'None'
     scene.view_settings.exposure = 0.0

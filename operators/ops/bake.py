@@ -12,6 +12,7 @@ from ..adapters.materials import HOOK_UP_ITEMS, remove_hook_up
 from ..bake_steps import SOLVE_FIRST, apply_bake, bake_inputs, compute_bake
 from ..common import report_error, report_warnings, selected_meshes
 from ..jobs import EngineJob, ready
+from ..properties import bake_settings_from_scene
 from ...lmdp_addon.errors import LMDPError
 
 
@@ -38,8 +39,13 @@ class LMDP_OT_bake(EngineJob, bpy.types.Operator):
         return ready(cls, context, selection=True, stage=None if mode == 'UNGUIDED' else "solution",
                      message=SOLVE_FIRST.format(mode=mode.replace('_', ' ').title()))
 
+    def read_settings(self, context):
+        # The path length follows the scene's Cycles Light Paths unless scene.lmdp.light_paths is CUSTOM.
+        settings, self.light_paths = bake_settings_from_scene(context.scene)
+        return settings
+
     def prepare(self, context):
-        return bake_inputs(context, self.settings, self.hook_up)
+        return bake_inputs(context, self.settings, self.hook_up, self.light_paths)
 
     def compute(self, inputs, settings, progress):
         return compute_bake(inputs, settings, progress)

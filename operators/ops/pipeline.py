@@ -23,7 +23,7 @@ from ..adapters.materials import HOOK_UP_ITEMS
 from ..bake_steps import apply_bake, check_bake_texels, compute_bake, planned_bake_inputs
 from ..common import report_error, report_warnings, selected_meshes
 from ..jobs import EngineJob, ready
-from ..properties import BLEND_RELATIVE_PATH
+from ..properties import BLEND_RELATIVE_PATH, bake_settings_from_scene
 from ..session import format_bytes, session_for
 
 
@@ -171,12 +171,18 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
     def poll(cls, context):
         return ready(cls, context, selection=True)
 
+    def read_settings(self, context):
+        # The bake's path length follows the scene's Cycles Light Paths unless light_paths is CUSTOM.
+        settings, self.light_paths = bake_settings_from_scene(context.scene)
+        return settings
+
     def prepare(self, context):
         scene, names = capture_scene(context)
         pipeline.check_build(scene, self.settings)
         # Every bake check runs now, before any work (a mesh without UV map is reported here),
         # except the texel checks, which rasterise every object: the worker runs them first.
-        bake = planned_bake_inputs(context, scene, names, self.settings, self.hook_up) if self.bake else None
+        bake = (planned_bake_inputs(context, scene, names, self.settings, self.hook_up, self.light_paths)
+                if self.bake else None)
         return scene, names, bake
 
     def compute(self, inputs, settings, progress):

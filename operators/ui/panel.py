@@ -13,6 +13,7 @@ import bpy
 from ...lmdp_addon.errors import LMDPError
 from ..common import MeshSelection, operator_available, selected_meshes
 from ..jobs import running_job
+from ..properties import light_paths_from_scene
 from ..session import format_bytes, format_seconds, peek
 
 
@@ -297,6 +298,16 @@ class LMDP_PT_show(_LMDPSection, bpy.types.Panel):
         _operator(layout, "lmdp.clear_display", icon='TRASH')
 
 
+def _light_paths_line(scene):
+    """The path length the scene's Cycles Light Paths give the bake, for the Bake section."""
+    paths = light_paths_from_scene(scene)
+    if paths.source != "SCENE":
+        return "Cycles is not available: Max Bounces is used"
+    clamp = f"; clamp {paths.clamp_indirect:g} not applied" if paths.clamp_ignored else ""
+    return (f"Cycles: {paths.path_length} bounces (Max {paths.max_bounces}, Diffuse "
+            f"{paths.diffuse_bounces}){clamp}")
+
+
 class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
     bl_idname = "LMDP_PT_bake"
     bl_label = "Bake"
@@ -311,7 +322,12 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row = layout.row()
         row.active = props.bake_mode in ('GUIDED', 'FINAL_GATHER')   # both draw their first bounce from u*
         row.prop(props, "guide_fraction")
-        layout.prop(props, "max_bounces")
+        layout.prop(props, "light_paths")
+        row = layout.row()
+        row.active = props.light_paths == 'CUSTOM'   # SCENE: the scene's Cycles Light Paths decide
+        row.prop(props, "max_bounces")
+        if props.light_paths == 'SCENE':
+            _status(layout, _light_paths_line(context.scene), icon='LIGHT')
         layout.prop(props, "output_dir")
         if not _operator(layout, "lmdp.bake", icon='RENDER_STILL'):
             _status(layout, "The bake operator is not part of this build", icon='INFO')
