@@ -1,7 +1,10 @@
 """Smooth and custom split normals against Cycles' bake of the same texels (issue 18, item 1).
 
 In the Cornell box: a subdivided, shade-smooth UV sphere floating in the room and a grid with
-custom split normals (every corner turned 35° about x). Both are baked by lmdp.bake (UNGUIDED)
+custom split normals (every corner turned 35° about x) floating 0.15 m above the short box. (At
+z = 0.3 the grid lay in the plane of the short box's top face: coplanar surfaces, where Cycles'
+rays from the grid hit the box top at t ~ 0 and the engine's lifted origins do not; the flat grid
+there was +60-69 % above Cycles as well, so that was no shading-normal effect.) Both are baked by lmdp.bake (UNGUIDED)
 and by Cycles (DIFFUSE / INDIRECT, clamping off, 8 bounces on both sides, two seeds), and
 compared as in ``test_bake_vs_cycles``: the mean within 2 % and within 5 standard errors of both
 estimates, the per-texel squared differences equal to the two variance estimates. Flat shading
@@ -31,7 +34,7 @@ def smooth_sphere():
 
 
 def custom_normal_grid():
-    bpy.ops.mesh.primitive_grid_add(x_subdivisions=4, y_subdivisions=4, size=0.3, location=(0.05, -0.3, 0.3))
+    bpy.ops.mesh.primitive_grid_add(x_subdivisions=4, y_subdivisions=4, size=0.3, location=(0.05, -0.3, 0.45))
     obj = bpy.context.active_object
     obj.name = "CustomGrid"
     mesh = obj.data
@@ -79,10 +82,7 @@ def flat_mean_error(lmdp_ext, obj, ours_smooth):
 @pytest.mark.slow
 @pytest.mark.parametrize("make", [
     smooth_sphere,
-    pytest.param(custom_normal_grid, marks=pytest.mark.xfail(
-        reason="open: the custom-normal grid bakes +67 % above Cycles (0.102 vs 0.061 red); not yet "
-               "understood whether Cycles ignores custom normals on flat (sharp) faces or the extraction "
-               "differs", strict=False)),
+    custom_normal_grid,
 ], ids=["smooth_sphere", "custom_normals"])
 def test_shading_normals_match_cycles(fresh_scene, lmdp_ext, demo, make):  # noqa: F811
     build("CORNELL_BOX", lmdp_ext)
