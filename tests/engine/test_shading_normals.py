@@ -128,3 +128,14 @@ def test_states_carry_their_shading_normal():
     plane = sample_states(dataclasses.replace(scene, object_carries_states=np.array([False, True])), 64)
     np.testing.assert_allclose(plane.bsdf_normals, plane.normals, atol=1e-6)   # flat part of a smooth scene
     assert sample_states(sky_scene(), 64).shading_normals is None
+
+
+def test_scene_fingerprint_includes_the_shading_normals():
+    """The Cycles reference cache and the solution's same-scene check key on the fingerprint:
+    smooth / custom normals change it, corner normals equal to the face normals do not."""
+    from lmdp_addon.bake.checks import scene_fingerprint
+    plain = scene_fingerprint(sky_scene())
+    assert scene_fingerprint(sky_scene(receiver_tilt=0.0, plane_tilt=0.0)) == plain
+    tilted = {scene_fingerprint(sky_scene(receiver_tilt=t)) for t in (30.0, 35.0, -35.0)}
+    assert len(tilted) == 3 and plain not in tilted
+    assert scene_fingerprint(sky_scene(receiver_tilt=30.0)) == scene_fingerprint(sky_scene(receiver_tilt=30.0))
