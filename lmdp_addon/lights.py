@@ -153,7 +153,7 @@ class EmitterSampler:
         d_plane = dot3(o, n_l) - np.take(self.plane32, e)
         return np.take(self.longest2, e) > d_plane * d_plane
 
-    def next_event(self, points, normals, rng, caster, mis=True, lift=None):
+    def next_event(self, points, normals, rng, caster, mis=True, lift=None, geometric=None):
         """``(values (k, 3) float32, shadow rays)``: the light-sampling half of the MIS estimate
         of D_e(y) = (1/π) ∫ L_e cos θ dω at surface points y (``mis=False``: the whole of D_e(y)
         by light sampling alone, weight ``q / p_L``; for paths that end at y).
@@ -171,6 +171,10 @@ class EmitterSampler:
         the shadow rays, whose origins are lifted along ``normals`` by ``lift (k,)``, the
         offsets of the points' triangles (``caster.offset(triangles)``; None: ``caster.offset()``),
         and which stop short of the emitter by its own offset (``caster.shadow_distance``).
+        ``geometric (k, 3)``: the geometric normals of the lit side where they differ from the
+        shading ``normals`` (smooth or custom normals): the origins are lifted along them, the
+        cosine q stays the shading one, and directions below the geometric surface give 0 (the
+        light the tracer's BSDF sampling absorbs there, see ``tracer``). None: ``normals``.
         """
         k = len(points)
         out = np.zeros((k, 3), np.float32)
@@ -186,7 +190,7 @@ class EmitterSampler:
             e = np.minimum(np.searchsorted(self.power_cdf32, r[:, 0], side="right"), self.n_triangles - 1)
         # Direction and distance from the offset origin itself: from the surface point, a shadow
         # ray at a grazing angle would meet the emitter's plane before ``dist`` (close emitters).
-        origin = points + eps * normals
+        origin = points + eps * (normals if geometric is None else geometric)
         o = tuple(np.ascontiguousarray(origin[:, i]) for i in range(3))
         n_l = tuple(np.take(c, e) for c in self.normal32_xyz)
         near = self.near(o, e, n_l)
@@ -196,7 +200,10 @@ class EmitterSampler:
         cos_l = -dot3(n_l, d)
         if self.any_two_sided:
             cos_l = np.where(np.take(self.two_sided, e), np.abs(cos_l), cos_l)
-        ok = np.flatnonzero((cos_y > 0) & (cos_l > 0) & (dist > 0))
+        valid = (cos_y > 0) & (cos_l > 0) & (dist > 0)
+        if geometric is not None:
+            valid &= dot3((geometric[:, 0], geometric[:, 1], geometric[:, 2]), d) > 0
+        ok = np.flatnonzero(valid)
         if len(ok) == 0:
             return out, 0
         tmax = caster.shadow_distance(np.take(dist, ok), np.take(self.triangles, np.take(e, ok)))
@@ -248,13 +255,14 @@ class EmitterSampler:
             solid_angle[close] = omega
         return dl, dist, solid_angle
 
-    def direct_light(self, points, normals, rng, caster, lift=None):
+    def direct_light(self, points, normals, rng, caster, lift=None, geometric=None):
         """``(D_e(y) (k, 3) float32, shadow rays)`` = (1/π) ∫ L_e cos θ dω at surface points y
         with normals ``normals`` (the side that is lit), by light sampling alone: one shadow ray
-        each (:meth:`next_event` with ``mis=False``; ``lift`` as there)."""
+        each (:meth:`next_event` with ``mis=False``; ``lift``, ``geometric`` as there)."""
         return self.next_event(np.ascontiguousarray(points, dtype=np.float32),
                                np.ascontiguousarray(normals, dtype=np.float32), rng, caster, mis=False,
-                               lift=lift)
+                               lift=lift, geometric=None if geometric is None
+                               else np.ascontiguousarray(geometric, dtype=np.float32))
 
     def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals):
         """BSDF-sampling half of the MIS estimate for the rays ``hits (k,)`` of a wavefront (from

@@ -42,6 +42,10 @@ class SceneArrays:
     object_names        list of O object names
     object_carries_states (O,) bool: selected meshes carry LMDP states; others only occlude
     object_has_uv       (O,) bool
+    corner_normals      (T, 3, 3) float32 unit shading normal of each corner (world space, as
+                        Cycles sees them: smooth, flat, custom split normals, "Smooth by Angle"),
+                        or None: every triangle is flat (its face normal). Corners that equal
+                        the face normal (flat faces) are flat: :meth:`smooth_triangles`
     world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays
     warnings            messages for the user gathered during extraction, and one per object
                         with triangles that are left out (:meth:`usable_triangles`)
@@ -59,6 +63,7 @@ class SceneArrays:
     triangle_uv: np.ndarray = None
     object_has_uv: np.ndarray = None
     warnings: list = field(default_factory=list)
+    corner_normals: np.ndarray = None
     _held: dict = field(default=None, init=False, repr=False, compare=False)
     _hold_depth: int = field(default=0, init=False, repr=False, compare=False)
 
@@ -77,6 +82,8 @@ class SceneArrays:
         self.triangle_emission_two_sided = np.asarray(self.triangle_emission_two_sided, dtype=bool).reshape(t)
         if self.triangle_uv is not None:
             self.triangle_uv = np.ascontiguousarray(self.triangle_uv, dtype=np.float32).reshape(t, 3, 2)
+        if self.corner_normals is not None:
+            self.corner_normals = np.ascontiguousarray(self.corner_normals, dtype=np.float32).reshape(t, 3, 3)
         if self.object_has_uv is None:
             self.object_has_uv = np.zeros(len(self.object_names), dtype=bool)
             if self.triangle_uv is not None:
@@ -168,6 +175,52 @@ class SceneArrays:
         with np.errstate(invalid="ignore", divide="ignore"):
             normal = np.where((area > 0)[:, None], cross / np.where(norm > 0, norm, 1.0)[:, None], 0.0)
         return normal, area
+
+    def smooth_triangles(self):
+        """(T,) bool: triangles whose shading normal varies or differs from the face normal
+        (:attr:`corner_normals` set, finite, and some corner more than ~0.08° off the face
+        normal). The others shade with their face normal, exactly as without corner normals."""
+        return self._derived("smooth", self._smooth_triangles)
+
+    def _smooth_triangles(self):
+        t = self.n_triangles
+        if self.corner_normals is None or t == 0:
+            return np.zeros(t, dtype=bool)
+        face = self.triangle_geometry()[0]
+        cn = self.corner_normals.astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            ok = np.all(np.isfinite(cn), axis=(1, 2)) & np.any(face != 0, axis=1)
+            cos = np.einsum("tkj,tj->tk", cn, face)
+        return ok & np.any(cos < 1.0 - 1e-6, axis=1)
+
+    def has_smooth_normals(self):
+        """True when some triangle shades with interpolated corner normals."""
+        return bool(np.any(self.smooth_triangles()))
+
+    def shading_normals(self, tri, bu, bv, side=None):
+        """(k, 3) float32 unit shading normals at barycentrics ``(bu, bv)`` (weights
+        ``1 - bu - bv, bu, bv`` of corners 0, 1, 2, embree's convention) of triangles ``tri``:
+        the interpolated, normalised corner normal on :meth:`smooth_triangles` (Cycles'
+        ``triangle_smooth_normal``; the face normal where the interpolation vanishes), the face
+        normal elsewhere. ``side (k,)`` bool: False flips the normal (the back side was hit;
+        Cycles flips N with Ng there)."""
+        tri = np.asarray(tri, dtype=np.int64)
+        face = self.triangle_geometry()[0]
+        out = face[tri].astype(np.float32)
+        smooth = np.flatnonzero(self.smooth_triangles()[tri])
+        if len(smooth):
+            t = tri[smooth]
+            u = np.asarray(bu, dtype=np.float64)[smooth]
+            v = np.asarray(bv, dtype=np.float64)[smooth]
+            cn = self.corner_normals[t].astype(np.float64)
+            n = (1.0 - u - v)[:, None] * cn[:, 0] + u[:, None] * cn[:, 1] + v[:, None] * cn[:, 2]
+            norm = np.linalg.norm(n, axis=1)
+            good = norm > 1e-12
+            n = np.where(good[:, None], n / np.where(good, norm, 1.0)[:, None], face[t])
+            out[smooth] = n.astype(np.float32)
+        if side is not None:
+            out = np.where(np.asarray(side, dtype=bool)[:, None], out, -out)
+        return out
 
     def valid_triangles(self):
         """Boolean mask of usable triangles (:meth:`usable_triangles`) with non-zero area."""

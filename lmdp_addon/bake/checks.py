@@ -96,12 +96,24 @@ def bad_uv_faces(scene, index, resolution):
 
 
 def scene_fingerprint(scene):
-    """Hash of the geometry, materials, world and object names of a SceneArrays (not the selection)."""
+    """Hash of the geometry, shading normals, materials, world and object names of a SceneArrays
+    (not the selection).
+
+    Shading normals count where they shade: the corner normals of the
+    ``SceneArrays.smooth_triangles`` (the others shade with their face normal, exactly as
+    without corner normals), so a flat scene hashes as before and its smooth or custom-normal
+    variant differs from it.
+    """
     h = hashlib.blake2b(digest_size=16)
     for array in (scene.vertices, scene.triangles, scene.triangle_object, scene.triangle_albedo,
                   scene.triangle_emission, scene.triangle_emission_two_sided, scene.world_radiance):
         h.update(np.ascontiguousarray(array).tobytes())
     h.update("\0".join(scene.object_names).encode())
+    smooth = scene.smooth_triangles()
+    if np.any(smooth):
+        h.update(b"\0corner_normals\0")
+        h.update(np.flatnonzero(smooth).astype(np.int64).tobytes())
+        h.update(np.ascontiguousarray(scene.corner_normals[smooth], dtype=np.float32).tobytes())
     return h.hexdigest()
 
 

@@ -175,6 +175,8 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
     reflects = (albedo.max(axis=1) > 0) & ~scene.is_emissive()
     corners = scene.corners()
     lifted = caster.lift(states.points, states.normals, states.point_triangle)
+    smooth = scene.has_smooth_normals() and states.shading_normals is not None
+    shading = states.bsdf_normals
     per_chunk = max(1, GATHER_RAY_BUDGET // R)
     for start in range(0, len(live), per_chunk):
         ids = live[start:start + per_chunk]
@@ -183,10 +185,12 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         u[:, 0] = (np.tile(cell // n, k) + rng.random(k * R)) / n
         u[:, 1] = (np.tile(cell % n, k) + rng.random(k * R)) / n
         owner = np.repeat(ids, R)
-        d = cosine_directions(states.normals[owner].astype(np.float32), u, stratified=True)
+        d = cosine_directions(shading[owner].astype(np.float32), u, stratified=True)
         origin = lifted[owner].astype(np.float32)
         tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
         hit = np.flatnonzero(tri >= 0)
+        if smooth:   # shading-normal cosine rays below the geometric surface are absorbed (tracer)
+            hit = hit[np.einsum("ij,ij->i", states.normals[owner[hit]], d[hit]) > 0]
         t = tri[hit]
         ng = face_normals[t]
         keep = (np.einsum("ij,ij->i", ng, d[hit]) < 0) & reflects[t]
@@ -194,7 +198,12 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         # The hit point from its barycentrics: on the triangle whatever the ray's length.
         tc = corners[t]
         pos = tc[:, 0] + bu[hit, None] * (tc[:, 1] - tc[:, 0]) + bv[hit, None] * (tc[:, 2] - tc[:, 0])
-        value = albedo[t] * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+        if smooth:
+            ns = scene.shading_normals(t, bu[hit], bv[hit])        # the front was hit (keep)
+            value = albedo[t] * lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
+                                                    geometric=ng)[0]
+        else:
+            value = albedo[t] * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R

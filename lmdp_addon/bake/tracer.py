@@ -116,6 +116,10 @@ class IndirectTracer:
         self.edge2 = (corners[:, 2] - corners[:, 0]).astype(np.float32)
         self.offsets = self.caster.triangle_offset.astype(np.float32)
         self.face_normals = scene.triangle_geometry()[0].astype(np.float32)
+        #: Smooth / custom normals: the shading normal N (BSDF, cosines) and the geometric
+        #: normal Ng (side, ray offset) differ, and directions below Ng are absorbed (Cycles'
+        #: ``bsdf_diffuse_sample``). Flat scenes keep the face normal for both, bit for bit.
+        self.smooth = scene.has_smooth_normals()
         self.albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
         self.objects = scene.triangle_object
         self.world = np.asarray(scene.world_radiance, dtype=np.float32)
@@ -144,18 +148,22 @@ class IndirectTracer:
         idx = np.arange(n)
         pos = np.ascontiguousarray(points, dtype=np.float32)
         nrm = np.ascontiguousarray(normals, dtype=np.float32)
+        gnrm = nrm
+        if self.smooth and triangles is not None:
+            nrm, gnrm = self._start_normals(pos, nrm, np.asarray(triangles, dtype=np.int64))
         states = np.asarray(states, dtype=np.int64) if self.guide is not None else np.full(n, -1)
         d, w, cos_prev = self.directions.sample(nrm, states, np.asarray(u_first, np.float64),
                                                 np.asarray(u_mix), first=True)
+        w = self._above_geometry(w, gnrm, d)
         beta = np.ones((n, 3), np.float32)
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
-        idx, pos, nrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm, lift,
-                                                                 d, w, cos_prev, beta)
+        idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
+                                                                       gnrm, lift, d, w, cos_prev, beta)
         bounce = 1
         while len(idx):
             # ---- closest hits y_bounce of the sampled directions ----
-            origin = pos + lift[:, None] * nrm
+            origin = pos + lift[:, None] * gnrm
             tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
@@ -166,27 +174,28 @@ class IndirectTracer:
             # ---- the vertex y_bounce: β_k = β_{k-1} w_{k-1} ρ(y_k) ----
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
-            pos, nrm, front, beta = self._vertices(d, tri, bu, bv, w, beta)
+            pos, nrm, gnrm, front, beta = self._vertices(d, tri, bu, bv, w, beta)
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
             objs = self.objects[tri]
             if bounce == 1 and self.gather is not None:
-                live = self._final_gather(L, idx, pos, nrm, lift, beta, tri, bu, bv, dist, front, objs, rng,
-                                          stats)
-                idx, pos, nrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
-                    live, idx, pos, nrm, lift, beta, tri, bu, bv, front, objs)
+                live = self._final_gather(L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs,
+                                          rng, stats)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
+                    live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
-                idx, pos, nrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
-                    np.flatnonzero(alive), idx, pos, nrm, lift, beta, tri, bu, bv, front, objs)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
+                    np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs)
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
             if self.guide is not None:
-                vstates = self.guide.states_at_hits(tri, bu, bv, pos, nrm, front, objs)
+                vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
-            direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift)
+            direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift,
+                                                         geometric=gnrm if self.smooth else None)
             stats.shadow_rays += shadow_rays
             L[idx] += beta * direct
             # ---- Russian roulette ----
@@ -194,30 +203,64 @@ class IndirectTracer:
                 q = np.minimum(_channel_max(beta), 1.0)
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
-                idx, pos, nrm, lift, vstates = _select_rows(survive, idx, pos, nrm, lift, vstates)
+                idx, pos, nrm, gnrm, lift, vstates = _select_rows(survive, idx, pos, nrm, gnrm, lift, vstates)
                 if len(idx) == 0:
                     break
             # ---- the next direction ω_bounce ----
             u = rng.random((len(idx), 3))
             d, w, cos_prev = self.directions.sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
+            w = self._above_geometry(w, gnrm, d)
             keep = w > 0
             if not np.all(keep):
-                idx, pos, nrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(keep), idx, pos, nrm,
-                                                                         lift, d, w, cos_prev, beta)
+                idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
+                    np.flatnonzero(keep), idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
             bounce += 1
         return L, stats
+
+    def _start_normals(self, pos, normals, triangles):
+        """Shading and geometric normals ``(N, Ng)`` (k, 3) float32 of the start points ``pos``
+        on ``triangles``, on the side of the given ``normals`` (the baked side): Ng the face
+        normal, N the corner normals interpolated at the points' barycentrics (recomputed from
+        the positions, so a jittered footprint point gets the normal Cycles gives it)."""
+        ng = rows(self.face_normals, triangles)
+        side = dot(ng, normals) >= 0
+        ng = np.where(side[:, None], ng, -ng)
+        smooth = np.flatnonzero(self.scene.smooth_triangles()[triangles])
+        nrm = ng.copy()
+        if len(smooth):
+            t = triangles[smooth]
+            e1 = self.edge1[t].astype(np.float64)
+            e2 = self.edge2[t].astype(np.float64)
+            r = pos[smooth].astype(np.float64) - self.corner0[t]
+            a, b, c = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+            p, q = (e1 * r).sum(1), (e2 * r).sum(1)
+            det = a * c - b * b
+            det = np.where(det != 0, det, 1.0)
+            bu, bv = (c * p - b * q) / det, (a * q - b * p) / det
+            nrm[smooth] = self.scene.shading_normals(t, bu, bv, side=side[smooth])
+        return nrm, ng
+
+    def _above_geometry(self, w, gnrm, d):
+        """``w`` with the directions below the geometric surface set to 0 (smooth scenes only):
+        Cycles' diffuse BSDF samples about the shading normal and rejects (absorbs) directions
+        with ``Ng · ω <= 0``, so the light they would carry is not part of the estimate."""
+        if not self.smooth:
+            return w
+        return np.where(dot(gnrm, d) > 0, w, np.float32(0.0)).astype(w.dtype, copy=False)
 
     def _vertices(self, d, tri, bu, bv, w, beta):
         """The hit points y_k of rays in directions ``d`` on triangles ``tri`` at barycentrics
         ``(bu, bv)``: positions (``c0 + u e1 + v e2``, on the triangle to the precision of its
-        corners), the normal of the side the ray arrived on, whether that is the front, and the
-        throughput ``β_k = β_{k-1} w_{k-1} ρ(y_k)``."""
+        corners), the shading normal N and the geometric normal Ng of the side the ray arrived
+        on (both flipped on a back face, as Cycles does; N = Ng on flat triangles), whether that
+        is the front, and the throughput ``β_k = β_{k-1} w_{k-1} ρ(y_k)``."""
         pos = (rows(self.corner0, tri) + bu[:, None] * rows(self.edge1, tri)
                + bv[:, None] * rows(self.edge2, tri))
         ng = rows(self.face_normals, tri)
         front = dot(ng, d) < 0
-        nrm = np.where(front[:, None], ng, -ng)
-        return pos, nrm, front, beta * (w[:, None] * rows(self.albedo, tri))
+        gnrm = np.where(front[:, None], ng, -ng)
+        nrm = self.scene.shading_normals(tri, bu, bv, side=front) if self.smooth else gnrm
+        return pos, nrm, gnrm, front, beta * (w[:, None] * rows(self.albedo, tri))
 
     def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k >= 2): the world
@@ -230,15 +273,17 @@ class IndirectTracer:
             lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals)
             L[idx[lit]] += rows(bw, lit) * value
 
-    def _final_gather(self, L, idx, pos, nrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats):
+    def _final_gather(self, L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats):
         """FINAL_GATHER at y_1: the radiance leaving it, ρ (ẑ_ind + D_e), with the direct part by
         light sampling at y_1 itself (``gather.build_gather``), ends the paths the gather serves;
-        returns the rows of the others (no state near, back faces, hits too close), which go on."""
-        value = self.gather.value_at(tri, bu, bv, pos, nrm, front, objs)
+        returns the rows of the others (no state near, back faces, hits too close), which go on.
+        ``nrm`` / ``gnrm``: the shading and geometric normals of the hit side."""
+        value = self.gather.value_at(tri, bu, bv, pos, gnrm, front, objs)
         done = ~np.isnan(value[:, 0]) & ~self.gather.too_close(dist, objs)
         g = np.flatnonzero(done)
         direct, shadow_rays = self.lights.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster,
-                                                       lift=np.take(lift, g))
+                                                       lift=np.take(lift, g),
+                                                       geometric=rows(gnrm, g) if self.smooth else None)
         stats.shadow_rays += shadow_rays
         L[idx[g]] += rows(beta, g) * (value[g].astype(np.float32) + direct)
         stats.gathered += int(done.sum())

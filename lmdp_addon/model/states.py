@@ -28,6 +28,10 @@ class StateSpace:
     strata_u, strata_v  hemisphere grid; S = strata_u * strata_v strata per point
     stratum_weight  (S,) float64 ∫_k cos θ dω / π, the Lambertian mass of each stratum
     skipped_triangles   number of zero-area / non-finite triangles on the selected meshes
+    shading_normals (m, 3) float64 unit shading normals at the points (interpolated corner
+                    normals, ``SceneArrays.shading_normals``), or None: equal to ``normals``
+                    (flat scenes). The strata and their frames stay those of the geometric
+                    normal; see :attr:`bsdf_normals`
     """
 
     points: np.ndarray
@@ -42,6 +46,12 @@ class StateSpace:
     stratum_weight: np.ndarray
     skipped_triangles: int = 0
     seed: int = 0
+    shading_normals: np.ndarray = None
+
+    @property
+    def bsdf_normals(self):
+        """(m, 3) the normals the BSDF shades with: :attr:`shading_normals`, else :attr:`normals`."""
+        return self.normals if self.shading_normals is None else self.shading_normals
 
     @property
     def n_points(self):
@@ -110,6 +120,9 @@ def _sample(scene, point_count, strata_u, strata_v, seed):
     corners = scene.corners()[tri]
     points = np.einsum("mk,mkj->mj", bary, corners)
     point_normals = normals[tri]
+    shading = None
+    if scene.has_smooth_normals():
+        shading = scene.shading_normals(tri, bary[:, 1], bary[:, 2]).astype(np.float64)
 
     obj = scene.triangle_object[tri]
     # Each point stands for an equal share of its object's sampled area.
@@ -131,4 +144,5 @@ def _sample(scene, point_count, strata_u, strata_v, seed):
         stratum_weight=stratum_cosine_weights(int(strata_u), int(strata_v)),
         skipped_triangles=skipped,
         seed=int(seed),
+        shading_normals=shading,
     )

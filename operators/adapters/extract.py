@@ -296,6 +296,27 @@ def _render_uv(mesh, loops):
     return uv.reshape(-1, 2)[loops]
 
 
+def _corner_normals(mesh, matrix, loops):
+    """(T, 3, 3) float32 world-space unit normals of the triangles' corners as Cycles shades
+    them: ``mesh.corner_normals`` (Blender 4.1+: flat faces give their face normal, smooth
+    faces the vertex normals, custom split normals and "Smooth by Angle" their results),
+    transformed by the inverse transpose of ``matrix``; None when the mesh has none."""
+    normals = getattr(mesh, "corner_normals", None)
+    if normals is None or len(loops) == 0 or len(normals) != len(mesh.loops):
+        return None
+    flat = np.empty(len(mesh.loops) * 3, dtype=np.float32)
+    normals.foreach_get("vector", flat)
+    m = np.asarray(matrix, dtype=np.float64)[:3, :3]
+    try:
+        inverse_transpose = np.linalg.inv(m).T
+    except np.linalg.LinAlgError:
+        return None
+    world = flat.reshape(-1, 3).astype(np.float64) @ inverse_transpose.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        world /= np.linalg.norm(world, axis=1, keepdims=True)
+    return world[loops].astype(np.float32)
+
+
 def _area_light_quad(name, matrix, light, warnings):
     """Corners (4, 3) facing the light's -Z and radiance (3,) of an AREA light, as Cycles sees it."""
     m = np.asarray(matrix, dtype=np.float64)
@@ -342,13 +363,15 @@ class _SceneBuilder:
         self.names, self.carries, self.has_uv = [], [], []
         self.uids, self.fingerprints = [], []
         self.parts = []  # (vertices, triangles, albedo, emission, two_sided, uv) per object
+        self.normals = []  # (T, 3, 3) corner normals per object (NaN: the face normal)
         self.offset = 0
 
     def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv,
-            uid=-1, fingerprint=None):
+            uid=-1, fingerprint=None, corner_normals=None):
         """One object: world vertices (V, 3), triangles (T, 3) into them, per-triangle albedo /
         emission (T, 3) and two-sidedness (T,), UVs (T, 3, 2) or None; the ``session_uid`` and
-        :func:`object_fingerprint` of its Blender object (see :class:`CapturedScene`)."""
+        :func:`object_fingerprint` of its Blender object (see :class:`CapturedScene`); its
+        corner normals (T, 3, 3) world space, or None (flat: the face normals)."""
         self.names.append(name)
         self.uids.append(uid)
         self.fingerprints.append(fingerprint)
@@ -357,6 +380,8 @@ class _SceneBuilder:
         self.parts.append((world, tris + self.offset, np.full(len(tris), len(self.names) - 1, dtype=np.int32),
                            albedo, emission, two_sided,
                            uv if uv is not None else np.zeros((len(tris), 3, 2), np.float32)))
+        self.normals.append(corner_normals if corner_normals is not None
+                            else np.full((len(tris), 3, 3), np.nan, np.float32))
         self.offset += len(world)
 
     def scene_arrays(self, world_radiance, warnings):
@@ -370,6 +395,9 @@ class _SceneBuilder:
             albedo = emission = np.zeros((0, 3))
             two_sided = np.zeros(0, dtype=bool)
             triangle_uv = np.zeros((0, 3, 2), dtype=np.float32)
+        corner_normals = np.concatenate(self.normals) if self.normals else None
+        if corner_normals is not None and not np.any(np.isfinite(corner_normals)):
+            corner_normals = None
         return CapturedScene(
             vertices=vertices,
             triangles=triangles,
@@ -381,6 +409,7 @@ class _SceneBuilder:
             world_radiance=world_radiance,
             triangle_emission_two_sided=two_sided,
             triangle_uv=triangle_uv,
+            corner_normals=corner_normals,
             object_has_uv=np.array(self.has_uv, dtype=bool),
             warnings=warnings,
             object_uids=np.array(self.uids, dtype=np.int64),
@@ -428,6 +457,7 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
             tris = tris[:, [0, 2, 1]]
             loops = loops[:, [0, 2, 1]]
         uv = _render_uv(mesh, loops)
+        corner_normals = _corner_normals(mesh, matrix, loops)
         if uv is None and carries_states:
             warnings.append(f"Object '{name}' has no UV map")
         material_index = np.empty(len(mesh.polygons), dtype=np.int32)
@@ -439,7 +469,8 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
         emission_table = np.array([e for _, e in per_slot])
         builder.add(name, carries_states, world, tris, albedo_table[slot_of_tri],
                     emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv,
-                    -1 if inst.is_instance else original.session_uid, None if inst.is_instance else fingerprint)
+                    -1 if inst.is_instance else original.session_uid, None if inst.is_instance else fingerprint,
+                    corner_normals=corner_normals)
         return True
     finally:
         if own_mesh:
