@@ -146,7 +146,7 @@ def compute_bake(inputs, settings, progress):
     result = driver.bake(inputs.scene, inputs.plan.names, settings, lmdp=lmdp, progress=progress,
                          precompute_seconds=dict(lmdp.seconds) if lmdp is not None else None,
                          plan=inputs.plan)
-    result.warnings = list(inputs.warnings)
+    result.warnings = list(inputs.warnings) + list(inputs.plan.texel_warnings)
     if inputs.light_paths is not None:
         result.light_paths = inputs.light_paths.as_dict()
     return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths)

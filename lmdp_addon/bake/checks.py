@@ -48,6 +48,7 @@ class BakePlan:
     warnings: list = field(default_factory=list)
     memory_bytes: int = 0
     texels_checked: bool = True
+    texel_warnings: list = field(default_factory=list)   #: what the texel checks said (objects left out)
 
 
 def object_index(scene, name):
@@ -140,7 +141,7 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
                          "Lightmap Pack) or deselect them; the lightmap is laid out by the UV map")
     _check_uv_values(scene, names, indices, R)
     memory = check_bake_memory(scene, names, indices, settings)
-    texels = _check_texels(scene, names, indices, R) if rasterise else {}
+    texels, skipped = _check_texels(scene, names, indices, R) if rasterise else ({}, [])
     if not scene.has_light():
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
                          "shader or Principled emission), an area light, or a non-black world")
@@ -148,19 +149,37 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
     if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
                         "the optimal policy is zero; a value below 1 keeps it unbiased")
-    return BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings,
+    plan = BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings,
                     memory_bytes=memory, texels_checked=bool(rasterise))
+    _leave_out(plan, skipped)
+    return plan
 
 
 def check_texels(scene, plan, progress=None):
     """Run the texel checks :func:`check_bake` left to later (``rasterise=False``) on ``plan``:
     every object is rasterised once, with ``progress.update`` (which raises ``Cancelled`` when the
-    user asked to stop) before each object. Raises :class:`SceneError` for objects that cover no
-    texel or have overlapping UVs; otherwise fills ``plan.texels`` and returns ``plan``."""
+    user asked to stop) before each object. Raises :class:`SceneError` for overlapping UVs and
+    when no object covers a texel; leaves out (with a warning) objects that cover none while
+    others do; fills ``plan.texels`` and returns ``plan``."""
     if not plan.texels_checked:
-        plan.texels = _check_texels(scene, plan.names, plan.indices, plan.resolution, progress)
+        plan.texels, skipped = _check_texels(scene, plan.names, plan.indices, plan.resolution, progress)
         plan.texels_checked = True
+        _leave_out(plan, skipped)
     return plan
+
+
+def _leave_out(plan, skipped):
+    """Drop the objects ``skipped`` ((name, reason) pairs: they cover no texel) from ``plan``
+    with one warning naming them; the others are baked."""
+    if not skipped:
+        return
+    gone = {name for name, _ in skipped}
+    keep = [k for k, n in enumerate(plan.names) if n not in gone]
+    plan.names = [plan.names[k] for k in keep]
+    plan.indices = [plan.indices[k] for k in keep]
+    plan.texel_warnings.append(
+        f"Not baked, their UV maps cover no texel centre of the {plan.resolution} x "
+        f"{plan.resolution} lightmap: " + "; ".join(f"{n} ({why})" for n, why in skipped))
 
 
 def _check_settings(settings, names):
@@ -181,8 +200,9 @@ def _check_settings(settings, names):
 
 
 def _check_texels(scene, names, indices, R, progress=None):
-    """Rasterise every object once: objects that cover no texel or have overlapping UVs are
-    errors. Returns the texels kept for the bake (:data:`TEXEL_CACHE_LIMIT`)."""
+    """Rasterise every object once. Overlapping UVs are errors, and so is a bake in which no
+    object covers a texel centre; objects that cover none while others do are returned to be left
+    out. Returns ``(texels kept for the bake (:data:`TEXEL_CACHE_LIMIT`), [(name, reason)])``."""
     texels, kept = {}, 0
     empty, overlapping = [], []
     for k, (n, i) in enumerate(zip(names, indices)):
@@ -195,17 +215,26 @@ def _check_texels(scene, names, indices, R, progress=None):
             kept += len(ts)
         count, example = uv_overlaps(scene, i, R, found)
         if len(ts) == 0:
-            empty.append(n)
+            empty.append((n, _why_no_texel(scene, i, R)))
         elif count:
             overlapping.append(f"{n} ({count} texels, e.g. column {example[1]}, row {example[0]})")
-    if empty:
-        raise SceneError(f"The UV map of {', '.join(empty)} covers no texel centre of a {R} x {R} "
-                         "image (UVs outside [0, 1] or degenerate): unwrap into the unit square")
+    if empty and len(empty) == len(names):
+        raise SceneError(f"The UV map of {'; '.join(f'{n} ({why})' for n, why in empty)} covers no "
+                         f"texel centre of a {R} x {R} image: nothing to bake")
     if overlapping:
         raise SceneError(f"Overlapping UVs on {'; '.join(overlapping)}: several faces share these "
                          f"texels of the {R} x {R} lightmap. Give each face its own area "
                          "(UV > Lightmap Pack, or Smart UV Project) and bake again")
-    return texels
+    return texels, empty
+
+
+def _why_no_texel(scene, index, R):
+    """Why an object's UV map covers no texel centre, with what to do."""
+    uv = scene.triangle_uv[scene.triangle_object == index].reshape(-1, 2)
+    if len(uv) and np.all((uv >= 0.0) & (uv <= 1.0)):
+        return (f"its UV islands inside [0, 1] are all smaller than a texel at {R} x {R}: raise "
+                "Resolution or scale the islands up (UV > Pack Islands)")
+    return "UVs outside [0, 1] or degenerate: unwrap into the unit square"
 
 
 def _check_uv_values(scene, names, indices, R):

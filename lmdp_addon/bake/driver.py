@@ -257,6 +257,7 @@ def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, p
         progress.begin("texels")
         check_texels(scene, plan, progress)
         progress.end(f"{len(plan.names)} object(s) rasterised at {plan.resolution} x {plan.resolution}")
+    names = [n for n in names if n in plan.names]      # the texel checks may leave objects out
     t0 = time.perf_counter()
     tracer, guide, info = make_tracer(scene, settings, lmdp)
     setup = time.perf_counter() - t0
@@ -273,4 +274,5 @@ def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, p
     seconds["bake_setup"] = setup
     seconds["bake"] = time.perf_counter() - t0
     return BakeResult(mode=settings.bake_mode, objects=objects, settings=settings.as_dict(),
-                      seconds=seconds, warnings=list(plan.warnings), guide_info=info)
+                      seconds=seconds, warnings=list(plan.warnings) + list(plan.texel_warnings),
+                      guide_info=info)

@@ -333,3 +333,26 @@ def test_preview_hook_up_links_at_object_level_and_is_undone(cornell):
     assert tex.image == bpy.data.images["Floor_lmdp_indirect"]
     assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
     assert floor.material_slots[0].link == 'DATA' and floor.material_slots[0].material == mesh_material
+
+
+def test_an_object_whose_islands_cover_no_texel_is_left_out_by_name(cornell, tmp_path):
+    """Issue 18, item 7: tiny UV islands inside [0, 1] (no texel centre at this resolution) no
+    longer stop the bake with "UVs outside [0, 1]": the object is named in a warning, the others
+    are baked."""
+    uv = bpy.data.objects["TallBox"].data.uv_layers.active.data
+    coords = np.empty(2 * len(uv), np.float32)
+    uv.foreach_get("uv", coords)
+    coords = 0.5 + 1e-5 * (coords - 0.5)          # every island shrunk to a speck at the centre
+    uv.foreach_set("uv", coords)
+    cornell.lmdp.bake_mode = 'UNGUIDED'
+    cornell.lmdp.bake_resolution = 16
+    cornell.lmdp.bake_samples = 2
+    cornell.lmdp.output_dir = str(tmp_path)
+    only("Floor", "TallBox")
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    assert "Floor_lmdp_indirect" in bpy.data.images
+    assert "TallBox_lmdp_indirect" not in bpy.data.images
+    stats = json.loads((tmp_path / "bake_stats.json").read_text())
+    assert list(stats["objects"]) == ["Floor"]
+    warning = [w for w in stats["warnings"] if "TallBox" in w]
+    assert warning and "smaller than a texel" in warning[0], stats["warnings"]

@@ -238,3 +238,29 @@ def test_fingerprint_ignores_the_selection_only():
     assert checks.scene_fingerprint(a) == checks.scene_fingerprint(b)
     b.triangle_albedo[0] *= 0.5
     assert checks.scene_fingerprint(a) != checks.scene_fingerprint(b)
+
+
+def _tiny_islands(name, size=1e-4):
+    """The Cornell box with every UV triangle of ``name`` shrunk around its own centroid: islands
+    inside [0, 1] that cover no texel centre (issue 18: the tiny islands of a real atlas)."""
+    scene = scenes.build_scene_arrays("CORNELL_BOX")
+    mask = scene.triangle_object == scene.object_names.index(name)
+    uv = scene.triangle_uv[mask]
+    centre = uv.mean(axis=1, keepdims=True)
+    scene.triangle_uv[mask] = centre + size * (uv - centre)
+    return scene
+
+
+def test_objects_whose_islands_cover_no_texel_are_left_out_with_a_warning():
+    """Issue 18, item 7: objects whose UV islands are too small for any texel centre do not stop
+    the bake: they are named in a warning that says why, and the others are baked, whether the
+    texel checks run in check_bake or later in the bake."""
+    scene = _tiny_islands("TallBox")
+    for rasterise in (True, False):
+        plan = check_bake(scene, ["Floor", "TallBox"], small(), rasterise=rasterise)
+        result = driver.bake(scene, ["Floor", "TallBox"], small(), plan=plan)
+        assert [o.name for o in result.objects] == ["Floor"]
+        warning = [w for w in result.warnings if "TallBox" in w]
+        assert len(warning) == 1 and "smaller than a texel" in warning[0], result.warnings
+    with pytest.raises(SceneError, match="TallBox .its UV islands inside \\[0, 1\\] are all smaller"):
+        check_bake(scene, ["TallBox"], small())
