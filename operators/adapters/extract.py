@@ -34,6 +34,7 @@ import numpy as np
 
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
+from .materials import NODE_MULTIPLY, slot_materials
 
 #: Cycles' default surface (a polygon without material): Diffuse BSDF, colour 0.8.
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
@@ -140,12 +141,19 @@ class _MaterialReader:
 
     def colour(self, node, name, owner):
         """Linear RGB (3,) of colour input ``name`` of ``node``; texture -> mean, else default."""
-        socket = node.inputs[name]
+        return self._socket_colour(node, node.inputs[name], name, owner)
+
+    def _socket_colour(self, node, socket, name, owner):
+        """:meth:`colour` of the input ``socket`` (called ``name``) of ``node``."""
         default = np.array(socket.default_value[:3], dtype=np.float64)
         source = self._source(socket)
         if source is None:
             return default
         src, _ = source
+        if src.type == 'MIX' and src.name == NODE_MULTIPLY:
+            # The add-on's own MULTIPLY hook-up: the surface is what its A input holds.
+            a = next(s for s in src.inputs if s.type == 'RGBA')
+            return self._socket_colour(src, a, "A", owner)
         if src.type in ('TEX_IMAGE', 'TEX_ENVIRONMENT') and src.image is not None:
             equirect = src.type == 'TEX_ENVIRONMENT' and src.projection == 'EQUIRECTANGULAR'
             mean = self.image_mean(src.image, equirect)
@@ -462,7 +470,7 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
             warnings.append(f"Object '{name}' has no UV map")
         material_index = np.empty(len(mesh.polygons), dtype=np.int32)
         mesh.polygons.foreach_get("material_index", material_index)
-        slots = [slot.material for slot in obj.material_slots]
+        slots = slot_materials(obj)          # through the add-on's PREVIEW hook-up
         per_slot = [reader.material(m) for m in slots] or [reader.material(None)]
         slot_of_tri = np.clip(material_index[poly], 0, len(per_slot) - 1)
         albedo_table = np.array([a for a, _ in per_slot])

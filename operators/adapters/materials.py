@@ -128,15 +128,26 @@ def material_users():
     return users
 
 
-def render_materials(obj):
-    """The materials ``obj`` renders with, the ones under LMDP's preview material included."""
-    saved = _saved_slots(obj)
+def slot_materials(obj):
+    """The material of each of ``obj``'s slots as it renders without LMDP's preview (the one the
+    preview covers, or None); ``obj`` may be an evaluated object (its original holds the record
+    of what the preview covered)."""
+    source = getattr(obj, "original", obj)
+    saved = _saved_slots(source)
     materials = []
     for index, slot in enumerate(obj.material_slots):
         mat = slot.material
         if _is_preview(mat):
-            mat = _underlying_material(obj, index, saved)
-        if mat is not None and not _is_preview(mat) and mat not in materials:
+            mat = _underlying_material(source, index, saved)
+        materials.append(None if _is_preview(mat) else mat)
+    return materials
+
+
+def render_materials(obj):
+    """The materials ``obj`` renders with, the ones under LMDP's preview material included."""
+    materials = []
+    for mat in slot_materials(obj):
+        if mat is not None and mat not in materials:
             materials.append(mat)
     return materials
 

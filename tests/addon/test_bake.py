@@ -356,3 +356,22 @@ def test_an_object_whose_islands_cover_no_texel_is_left_out_by_name(cornell, tmp
     assert list(stats["objects"]) == ["Floor"]
     warning = [w for w in stats["warnings"] if "TallBox" in w]
     assert warning and "smaller than a texel" in warning[0], stats["warnings"]
+
+
+@pytest.mark.parametrize("hook_up", ["MULTIPLY", "PREVIEW"])
+def test_the_capture_sees_through_the_addons_own_hook_up(cornell, lmdp_ext, hook_up):
+    """Issue 18: a re-bake after a hook-up captures the materials as they were: the MULTIPLY
+    node's original colour (not its default grey) and the mesh's materials under PREVIEW's
+    object-level emission material (not an emitter)."""
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    only("Floor", "TallBox")
+    meshes = [bpy.data.objects["Floor"], bpy.data.objects["TallBox"]]
+    before = extract.extract_scene(bpy.context, meshes)
+    cornell.lmdp.bake_mode = 'UNGUIDED'
+    cornell.lmdp.bake_resolution = 16
+    cornell.lmdp.bake_samples = 2
+    assert bpy.ops.lmdp.bake(hook_up=hook_up) == {'FINISHED'}
+    after = extract.extract_scene(bpy.context, meshes)
+    np.testing.assert_allclose(after.triangle_albedo, before.triangle_albedo)
+    np.testing.assert_allclose(after.triangle_emission, before.triangle_emission)
+    assert not any("LMDP" in w for w in after.warnings), after.warnings
