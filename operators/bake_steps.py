@@ -135,9 +135,7 @@ def check_bake_texels(inputs, progress):
     progress reports them and Esc cancels them). Run All calls this before it samples, so a UV
     problem stops it before the long stages; :func:`compute_bake` needs no call (the driver runs
     them first when they are still due)."""
-    progress.begin("texels")
     check_texels(inputs.scene, inputs.plan, progress)
-    progress.end(f"{len(inputs.plan.names)} object(s) rasterised")
 
 
 def compute_bake(inputs, settings, progress):

@@ -157,14 +157,18 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
 
 def check_texels(scene, plan, progress=None):
     """Run the texel checks :func:`check_bake` left to later (``rasterise=False``) on ``plan``:
-    every object is rasterised once, with ``progress.update`` (which raises ``Cancelled`` when the
-    user asked to stop) before each object. Raises :class:`SceneError` for overlapping UVs and
+    every object is rasterised once, as a "texels" step of ``progress`` whose ``update`` (which
+    raises ``Cancelled`` when the user asked to stop) runs before each object. Raises :class:`SceneError` for overlapping UVs and
     when no object covers a texel; leaves out (with a warning) objects that cover none while
     others do; fills ``plan.texels`` and returns ``plan``."""
     if not plan.texels_checked:
+        if progress is not None:
+            progress.begin("texels")
         plan.texels, skipped = _check_texels(scene, plan.names, plan.indices, plan.resolution, progress)
         plan.texels_checked = True
         _leave_out(plan, skipped)
+        if progress is not None:
+            progress.end(f"{len(plan.names)} object(s) rasterised at {plan.resolution} x {plan.resolution}")
     return plan
 
 

@@ -253,10 +253,7 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
 def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan):
     """:func:`bake` with the scene's derived geometry held and its plan."""
     progress = progress if progress is not None else Progress()
-    if not plan.texels_checked:
-        progress.begin("texels")
-        check_texels(scene, plan, progress)
-        progress.end(f"{len(plan.names)} object(s) rasterised at {plan.resolution} x {plan.resolution}")
+    check_texels(scene, plan, progress)                # when the plan still needs them
     names = [n for n in names if n in plan.names]      # the texel checks may leave objects out
     t0 = time.perf_counter()
     tracer, guide, info = make_tracer(scene, settings, lmdp)
