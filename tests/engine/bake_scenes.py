@@ -16,6 +16,13 @@ from lmdp_addon.settings import Settings
 K = 5.0  # standard errors
 
 
+def small(**kw):
+    """Settings of a small, fast UNGUIDED bake (``kw`` overrides)."""
+    base = dict(bake_mode="UNGUIDED", bake_resolution=16, bake_samples=8, bake_margin=2)
+    base.update(kw)
+    return Settings(**base)
+
+
 def assert_within(values, expected, extra=0.0, k=K):
     values = np.asarray(values, dtype=np.float64)
     n = len(values)

@@ -12,21 +12,7 @@ from lmdp_addon.model import pipeline
 from lmdp_addon.progress import Progress
 from lmdp_addon.settings import Settings
 
-
-@pytest.fixture(scope="module")
-def cornell():
-    return scenes.build_scene_arrays("CORNELL_BOX")
-
-
-@pytest.fixture(scope="module")
-def cornell_solved(cornell):
-    return pipeline.run_all(cornell, Settings(point_count=512))
-
-
-def small(**kw):
-    base = dict(bake_mode="UNGUIDED", bake_resolution=16, bake_samples=8, bake_margin=2)
-    base.update(kw)
-    return Settings(**base)
+from bake_scenes import small
 
 
 def test_texels_are_the_texels_module_on_the_object_triangles(cornell):

@@ -4,28 +4,12 @@ import numpy as np
 import pytest
 
 from lmdp_addon.bake import driver as baking
-from lmdp_addon.model import pipeline
 from lmdp_addon import demo_geometry as scenes
 from lmdp_addon.errors import Cancelled
 from lmdp_addon.progress import Progress
 from lmdp_addon.raycast import RayCaster
-from lmdp_addon.settings import Settings
 
-
-@pytest.fixture(scope="module")
-def cornell():
-    return scenes.build_scene_arrays("CORNELL_BOX")
-
-
-@pytest.fixture(scope="module")
-def cornell_solved(cornell):
-    return pipeline.run_all(cornell, Settings(point_count=512))
-
-
-def small(**kw):
-    base = dict(bake_mode="UNGUIDED", bake_resolution=16, bake_samples=8, bake_margin=2)
-    base.update(kw)
-    return Settings(**base)
+from bake_scenes import small
 
 
 def test_bake_image_layout_margin_and_stats(cornell):
