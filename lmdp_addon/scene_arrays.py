@@ -46,7 +46,10 @@ class SceneArrays:
                         Cycles sees them: smooth, flat, custom split normals, "Smooth by Angle"),
                         or None: every triangle is flat (its face normal). Corners that equal
                         the face normal (flat faces) are flat: :meth:`smooth_triangles`
-    world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays
+    world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays; with an
+                        ``environment``, its mean radiance over the sphere
+    environment         :class:`~lmdp_addon.world.EnvironmentMap` of a world that is not uniform
+                        (an HDRI), or None: escaping rays see ``world_radiance``
     warnings            messages for the user gathered during extraction, and one per object
                         with triangles that are left out (:meth:`usable_triangles`)
     """
@@ -64,6 +67,7 @@ class SceneArrays:
     object_has_uv: np.ndarray = None
     warnings: list = field(default_factory=list)
     corner_normals: np.ndarray = None
+    environment: object = None
     _held: dict = field(default=None, init=False, repr=False, compare=False)
     _hold_depth: int = field(default=0, init=False, repr=False, compare=False)
 

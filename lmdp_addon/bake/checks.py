@@ -115,6 +115,10 @@ def scene_fingerprint(scene):
         h.update(b"\0corner_normals\0")
         h.update(np.flatnonzero(smooth).astype(np.int64).tobytes())
         h.update(np.ascontiguousarray(scene.corner_normals[smooth], dtype=np.float32).tobytes())
+    if getattr(scene, "environment", None) is not None:
+        h.update(b"\0environment\0")
+        for array in scene.environment.fingerprint_arrays():
+            h.update(np.ascontiguousarray(array).tobytes())
     return h.hexdigest()
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import world as world_light
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import cosine_directions
@@ -149,7 +150,8 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
 
     estimated with ``rays_per_point`` cosine-distributed rays per point (a jittered square
     grid through the concentric map) and one light sample at each hit (``D_e`` by
-    :meth:`~lmdp_addon.lights.EmitterSampler.direct_light`, as the tracer samples it). Rays that
+    :meth:`~lmdp_addon.lights.EmitterSampler.direct_light`, as the tracer samples it; plus the
+    world's by :func:`~lmdp_addon.world.next_event` when the scene has an environment map). Rays that
     escape or meet an emitter or the back of a face give 0 (the direct light of x itself and the
     void of the passive dynamics). Hidden (buried) points get 0, and so do the points not in
     ``points`` (indices; default all). The build's ray caster and its locator's ``targets``
@@ -162,6 +164,7 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
     if m == 0:
         return b
     lights = EmitterSampler(scene)
+    environment = _environment(scene)
     targets = dynamics.locator.targets if dynamics.locator is not None else None
     live = np.arange(m) if points is None else np.unique(np.asarray(points, dtype=np.int64))
     if targets is not None:
@@ -200,13 +203,25 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         pos = tc[:, 0] + bu[hit, None] * (tc[:, 1] - tc[:, 0]) + bv[hit, None] * (tc[:, 2] - tc[:, 0])
         if smooth:
             ns = scene.shading_normals(t, bu[hit], bv[hit])        # the front was hit (keep)
-            value = albedo[t] * lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
-                                                    geometric=ng)[0]
+            direct = lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t), geometric=ng)[0]
         else:
-            value = albedo[t] * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+            ns = ng
+            direct = lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+        if environment is not None:    # the world's direct light at the hit, by world sampling
+            direct = direct + world_light.next_event(
+                environment, pos.astype(np.float32), ns.astype(np.float32), rng, caster,
+                caster.offset(t).astype(np.float32), geometric=ng.astype(np.float32) if smooth else None,
+                mis=False)[0]
+        value = albedo[t] * direct
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R
+
+
+def _environment(scene):
+    """The scene's lit :class:`~lmdp_addon.world.EnvironmentMap`, or None (a uniform world)."""
+    env = getattr(scene, "environment", None)
+    return env if env is not None and env.lit else None
 
 
 def build_gather(guide, lmdp, max_bounces=None, seed=0):
@@ -226,13 +241,19 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
     With ``max_bounces`` = N the recursion runs from ẑ = w for N - 1 steps: the gather point is
     the path's first vertex, so the light it reads has at most N - 1 more vertices, as the
     tracer's and Cycles' paths of N bounces (the converged ẑ would add the light of every
-    longer path). ``max_bounces=None``: the converged solution.
+    longer path). ``max_bounces=None``: the converged solution. With an environment map (HDRI)
+    w = 0: its direct light is sampled at the hits (b) and at the gather point (the tracer)
+    instead of read from the LMDP's coarse world terminals.
     """
     problem = lmdp.lmdp
     E = len(lmdp.dynamics.emitter_radiance)
     P_NN = problem.P_NN
     q = np.asarray(problem.q, dtype=np.float64)
     w = np.asarray(problem.P_NT[:, E:] @ problem.z_terminal[E:], dtype=np.float64)   # world (void: 0)
+    if _environment(lmdp.scene) is not None:
+        # An environment map: its direct light is sampled where it arrives (b at the hits, the
+        # tracer at the gather point), so ẑ is the indirect light alone, from ẑ = 0.
+        w = np.zeros_like(w)
     z_hat = w.copy()
     steps = 100_000 if max_bounces is None else int(max_bounces) - 1
     if steps > 0:

@@ -22,7 +22,10 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
   emitted light are combined by multiple importance sampling
   (:meth:`~lmdp_addon.lights.EmitterSampler.emission_hits`); the emitter hit by the texel's own
   first ray is direct light and is left out; a uniform world is counted only through sampled
-  rays that escape from y_k (k >= 1), weight ``β_k w_k L_world``;
+  rays that escape from y_k (k >= 1), weight ``β_k w_k L_world``; an environment map (HDRI) is
+  sampled at every y_k with a shadow ray to infinity as well and the two halves are combined by
+  the balance heuristic (:func:`~lmdp_addon.world.next_event`,
+  :func:`~lmdp_addon.world.escape_weight`);
 * ``max_bounces`` = N keeps vertices y_1 .. y_N (NEE at each and the escape of y_N's ray), which
   is what Cycles' ``max_bounces = N`` (with ``diffuse_bounces >= N``) bakes: Cycles' kernel uses
   ``N + 1`` internally and stops shading at the vertex whose incoming bounce count reaches it;
@@ -45,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import world as world_light
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
@@ -124,6 +128,10 @@ class IndirectTracer:
         self.objects = scene.triangle_object
         self.world = np.asarray(scene.world_radiance, dtype=np.float32)
         self.world_lit = bool(np.any(self.world > 0))
+        #: An environment map (HDRI): escaping rays see L_env(ω) with an MIS weight and every
+        #: vertex samples the world with a shadow ray (``world.py``); None: the uniform world.
+        self.environment = scene.environment if getattr(scene, "environment", None) is not None \
+            and scene.environment.lit else None
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None):
@@ -198,6 +206,11 @@ class IndirectTracer:
                                                          geometric=gnrm if self.smooth else None)
             stats.shadow_rays += shadow_rays
             L[idx] += beta * direct
+            if self.environment is not None:   # ---- the world's half of its MIS estimate ----
+                direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
+                                                             geometric=gnrm if self.smooth else None)
+                stats.shadow_rays += shadow_rays
+                L[idx] += beta * direct
             # ---- Russian roulette ----
             if bounce >= self.rr_start:
                 q = np.minimum(_channel_max(beta), 1.0)
@@ -266,7 +279,11 @@ class IndirectTracer:
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k >= 2): the world
         through the rays that escape, the emitters through the rays ``h`` that hit geometry
         (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays."""
-        if self.world_lit and len(h) < len(idx):
+        if self.environment is not None and len(h) < len(idx):
+            miss = np.flatnonzero(tri < 0)
+            L[idx[miss]] += rows(bw, miss) * world_light.escape_weight(self.environment, rows(d, miss),
+                                                                       np.take(cos_prev, miss))
+        elif self.world_lit and len(h) < len(idx):
             miss = np.flatnonzero(tri < 0)
             L[idx[miss]] += rows(bw, miss) * self.world
         if len(h):
@@ -285,6 +302,12 @@ class IndirectTracer:
                                                        lift=np.take(lift, g),
                                                        geometric=rows(gnrm, g) if self.smooth else None)
         stats.shadow_rays += shadow_rays
+        if self.environment is not None:   # the world's direct light at y_1 (ẑ then leaves it out)
+            world_direct, shadow_rays = world_light.next_event(
+                self.environment, rows(pos, g), rows(nrm, g), rng, self.caster, np.take(lift, g),
+                geometric=rows(gnrm, g) if self.smooth else None, mis=False)
+            stats.shadow_rays += shadow_rays
+            direct = direct + world_direct
         L[idx[g]] += rows(beta, g) * (value[g].astype(np.float32) + direct)
         stats.gathered += int(done.sum())
         stats.gather_fallback += int((~done).sum())
