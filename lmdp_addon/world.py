@@ -14,8 +14,9 @@ pixel centres is bilinear (Cycles' default ``Linear`` interpolation, periodic in
 nearest pixel (``Closest``).
 
 Importance sampling (pbrt's ``PiecewiseConstant2D``, Cycles' background map): pixel (i, j) is
-chosen with probability ∝ ``max_c L_ij,c · sin θ_i`` (θ_i at the row's centre), and a point
-uniform in it. With θ = π (1 - v), φ = π - 2π u, ``dω = 2π² sin θ du dv``, so the density per
+chosen with probability ∝ ``m_ij · sin θ_i`` (θ_i at the row's centre, m_ij the mean over the
+pixel of the interpolated max-channel radiance, so every direction with radiance can be drawn),
+and a point uniform in it. With θ = π (1 - v), φ = π - 2π u, ``dω = 2π² sin θ du dv``, so the density per
 steradian is exact:
 
     p(ω) = P(i, j) · W H / (2π² sin θ(ω)).                                            (2)
@@ -67,7 +68,8 @@ class EnvironmentMap:
         # pixel weights ∝ max-channel radiance · sin θ at the row centre (eq. 2)
         theta = np.pi * (1.0 - (np.arange(H) + 0.5) / H)
         self.row_sin = np.sin(theta)
-        weight = self.radiance.max(axis=2).astype(np.float64) * self.row_sin[:, None]
+        weight = _pixel_means(self.radiance.max(axis=2).astype(np.float64), self.interpolation) \
+            * self.row_sin[:, None]
         total = weight.sum()
         self.lit = bool(total > 0)
         self.pixel_prob = (weight / total).ravel() if self.lit else np.zeros(H * W)
@@ -169,6 +171,17 @@ class EnvironmentMap:
         d = np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=-1).reshape(-1, 3)
         values = self.radiance_at(d).astype(np.float64).reshape(Z * F, per_side * per_side, 3)
         return values.mean(axis=1)
+
+
+def _pixel_means(values, interpolation):
+    """(H, W) mean of the interpolated ``values (H, W)`` over each pixel: the pixels themselves
+    for 'CLOSEST'; for 'LINEAR' the separable filter (1/8, 3/4, 1/8) (the integral of the
+    bilinear tents over a pixel; periodic in u and v as the lookup), so that the sampling
+    density is positive wherever the bilinear radiance is."""
+    if interpolation == "CLOSEST":
+        return values
+    out = 0.75 * values + 0.125 * (np.roll(values, 1, axis=1) + np.roll(values, -1, axis=1))
+    return 0.75 * out + 0.125 * (np.roll(out, 1, axis=0) + np.roll(out, -1, axis=0))
 
 
 def world_bin_count(environment):

@@ -14,7 +14,9 @@ Conventions follow Cycles as measured in docs/cycles_conventions.md:
   object scale (sx, sy): radiance L = P c / (π a sx b sy) (``normalize`` on, the default;
   P c / π when off), emitted towards the light's -Z only. Disk / ellipse: a rectangle of the
   same area, with a warning. Cycles' lights do not occlude; the quad here does.
-* World: Background Color x Strength of the shader connected to the World Output.
+* World: Background Color x Strength of the shader connected to the World Output, an
+  Environment Texture (HDRI) as an environment map, other world trees rendered into one
+  (``world_capture``).
 * Objects in Edit Mode are captured as the user sees them (their edit mesh, modifiers applied).
 
 The result is a :class:`CapturedScene`: a ``SceneArrays`` that also knows which Blender object
@@ -35,6 +37,7 @@ import numpy as np
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
 from .materials import NODE_MULTIPLY, slot_materials
+from .world_capture import WorldReader
 
 #: Cycles' default surface (a polygon without material): Diffuse BSDF, colour 0.8.
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
@@ -257,18 +260,9 @@ class _MaterialReader:
         return self._cache[key]
 
     def world(self, world):
-        """(3,) radiance of a uniform world seen by escaping rays."""
-        if world is None:
-            return _BLACK
-        owner = f"World '{world.name}'"
-        tree = world.node_tree
-        if tree is None or (_NODES_OPTIONAL and not world.use_nodes):
-            return np.array(world.color[:3], dtype=np.float64)
-        output = tree.get_output_node('CYCLES')
-        if output is None:
-            return _BLACK
-        albedo, emission = self.shader(output.inputs["Surface"], owner)
-        return np.maximum(np.asarray(emission, dtype=np.float64), 0.0)
+        """``(world_radiance (3,), environment or None)`` of the world seen by escaping rays
+        (:class:`.world_capture.WorldReader`: uniform, an HDRI map, or a render of the world)."""
+        return WorldReader(self.warnings).capture(world)
 
 
 # -- geometry ---------------------------------------------------------------------------------
@@ -392,7 +386,7 @@ class _SceneBuilder:
                             else np.full((len(tris), 3, 3), np.nan, np.float32))
         self.offset += len(world)
 
-    def scene_arrays(self, world_radiance, warnings):
+    def scene_arrays(self, world_radiance, warnings, environment=None):
         if self.parts:
             vertices, triangles, triangle_object, albedo, emission, two_sided, triangle_uv = \
                 (np.concatenate(column) for column in zip(*self.parts))
@@ -415,6 +409,7 @@ class _SceneBuilder:
             object_names=self.names,
             object_carries_states=np.array(self.carries, dtype=bool),
             world_radiance=world_radiance,
+            environment=environment,
             triangle_emission_two_sided=two_sided,
             triangle_uv=triangle_uv,
             corner_normals=corner_normals,
@@ -536,4 +531,5 @@ def extract_scene(context, selected_objects, depsgraph=None):
     if skipped_lights:
         warnings.append("Only area lights are modelled; skipped " + ", ".join(skipped_lights)
                         + ": use an area light or an emissive mesh instead")
-    return builder.scene_arrays(reader.world(depsgraph.scene.world), warnings)
+    world_radiance, environment = reader.world(depsgraph.scene.world)
+    return builder.scene_arrays(world_radiance, warnings, environment)
