@@ -13,9 +13,14 @@ import numpy as np
 import pytest
 
 from helpers import select
-from test_bake_vs_cycles import BOUNCES, K, assert_means_agree, compare, demo, lmdp_bake, reference  # noqa: F401
+from test_bake_vs_cycles import BOUNCES, K, assert_means_agree, compare, lmdp_bake, reference
 
 RESOLUTION = 24
+
+
+@pytest.fixture
+def demo(lmdp_ext):
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
 
 
 def bundled_hdri(name):
@@ -89,7 +94,7 @@ def world_image(image, strength=1.0, rotation=None, interpolation='Linear'):
     return world
 
 
-def check(lmdp_ext, demo, name, samples=512, ref_samples=1024, label="", resolution=RESOLUTION):  # noqa: F811
+def check(lmdp_ext, demo, name, samples=512, ref_samples=1024, label="", resolution=RESOLUTION):
     refs = reference(lmdp_ext, demo, name, resolution, ref_samples)
     ob = lmdp_bake(lmdp_ext, name, "UNGUIDED", resolution, samples)
     ours, cyc, var_o, var_c = compare(ob, refs)
@@ -103,7 +108,7 @@ def check(lmdp_ext, demo, name, samples=512, ref_samples=1024, label="", resolut
     return ob, ours, cyc, var_o, var_c
 
 
-def test_uniform_world_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_uniform_world_matches_cycles(fresh_scene, lmdp_ext, demo):
     cycles_scene(fresh_scene)
     courtyard()
     world_background((0.6, 0.7, 1.0), 1.5)
@@ -113,7 +118,7 @@ def test_uniform_world_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F81
     check(lmdp_ext, demo, "Floor", label="uniform world")
 
 
-def test_single_bright_pixel_lights_the_side_cycles_lights(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_single_bright_pixel_lights_the_side_cycles_lights(fresh_scene, lmdp_ext, demo):
     """One bright pixel of a 32 x 16 map, up and towards +x+y (azimuth 33.75°, elevation
     28°): the floor's quadrants next to the walls it lights must match Cycles', each within
     5 standard errors; a map read mirrored in u or v lights other walls (the test says by how
@@ -140,7 +145,7 @@ def test_single_bright_pixel_lights_the_side_cycles_lights(fresh_scene, lmdp_ext
         assert np.all(np.abs(diff) <= K * sigma), (q, diff, sigma)
 
 
-def test_rotated_hdri_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_rotated_hdri_matches_cycles(fresh_scene, lmdp_ext, demo):
     """city.exr turned 70° about z (and 10° about x) by a Mapping node: the rotation is read
     exactly, and the HDRI's sun lights the walls where Cycles' does."""
     cycles_scene(fresh_scene)
@@ -187,7 +192,7 @@ def room_with_opening():
     return room
 
 
-def test_hdri_lit_room_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_hdri_lit_room_matches_cycles(fresh_scene, lmdp_ext, demo):
     """A room lit through a window by city.exr, its sun (21 % of the map's light) turned to shine
     in: walls, floor and ceiling baked as one object (32 px, 4096 samples on both sides: a
     standard error of about 0.6 %)."""
@@ -198,7 +203,7 @@ def test_hdri_lit_room_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F81
     check(lmdp_ext, demo, "Room", samples=4096, ref_samples=4096, label="HDRI-lit room", resolution=32)
 
 
-def test_world_tree_rendered_into_a_map(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_world_tree_rendered_into_a_map(fresh_scene, lmdp_ext, demo):
     """A Gradient Texture world (bright towards azimuth 50°): not readable node by node, so it is rendered
     into an equirectangular map once, with a warning naming the world and the node; the bake then
     matches Cycles'."""
