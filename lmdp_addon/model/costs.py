@@ -8,7 +8,8 @@ and terminal T (emitters, world, void) and asks for the desirability
 with z_T fixed. Two cost modes build Q, P and z_T (see ``design.md``):
 
 * ``THESIS``  : P normalised with the ε self-loop of eq. 3.1; g = 1 on points, 0 on emitters;
-                z_T = 1 on emitters (and a non-black world), 0 on the void; λ = thesis default
+                z_T = 1 on emitters (and a non-black world; per direction bin of an environment map
+                its luminance relative to the brightest bin), 0 on the void; λ = thesis default
                 (sum of the lights' power per unit area) times ``lambda_scale``.
 * ``PHYSICAL``: P = cosine-weighted form factors; Q = diag(albedo) per RGB channel (g = -log
                 albedo, λ = 1); z_T = emitted radiance. Then the equation above *is* the
@@ -98,8 +99,10 @@ def build_first_exit_lmdp(dynamics, states, cost_mode="PHYSICAL", lambda_=None, 
         P = sp.diags(1.0 / np.where(rows > 0, rows, 1.0)) @ P
         g = np.ones((m, 1))
         q = np.exp(-lambda_ * g)
-        world_lit = float(np.any(dynamics.world_radiance > 0))
-        z_terminal = np.concatenate([np.ones(E), [world_lit, 0.0]]).reshape(-1, 1)
+        world = luminance(dynamics.world_terminal_radiance())
+        # 1 on a lit uniform world; per direction bin its luminance relative to the brightest
+        world_z = world / world.max() if world.max() > 0 else np.zeros_like(world)
+        z_terminal = np.concatenate([np.ones(E), world_z, [0.0]]).reshape(-1, 1)
         lam = float(lambda_)
     else:
         eps = 0.0
@@ -108,7 +111,7 @@ def build_first_exit_lmdp(dynamics, states, cost_mode="PHYSICAL", lambda_=None, 
         with np.errstate(divide="ignore"):
             g = -np.log(albedo)
         z_terminal = np.vstack([dynamics.emitter_radiance.reshape(E, 3),
-                                dynamics.world_radiance.reshape(1, 3), np.zeros((1, 3))])
+                                dynamics.world_terminal_radiance(), np.zeros((1, 3))])
         lam = 1.0
     return FirstExitLMDP(P=sp.csr_matrix(P), q=q, z_terminal=z_terminal, lambda_=lam,
                          cost_mode=cost_mode, g=g, epsilon=eps)

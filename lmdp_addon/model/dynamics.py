@@ -9,7 +9,9 @@ density proportional to BRDF·cos within the stratum, so each carries exactly ``
   (the next state is that point with the reversed ray direction as outgoing direction; for the
   Lambertian reduction only the point matters, see ``design.md``),
 * an emitter terminal (uniform emission: one terminal per emitter group),
-* the world terminal (escaping ray, world not black),
+* the world terminal (escaping ray, world not black); with an environment map (HDRI) one world
+  terminal per equal-area direction bin (``world.bin_of_direction``), whose z is the map's mean
+  radiance over the bin, so the solution sees a sky that is not uniform,
 * the void terminal (z = 0): geometry that carries no states, back faces (of one-sided emitters
   and of every surface), hits with no compatible state, and escapes into a black world.
 
@@ -36,6 +38,7 @@ from ..lights import EmitterSampler
 from .locator import StateLocator, buried_points
 from .patterns import DirectionPatterns, LightPatterns
 from ..raycast import RayCaster
+from ..world import world_bin_count
 
 #: Column roles after the point columns.
 WORLD = "world"
@@ -59,7 +62,10 @@ class PassiveDynamics:
     n_points, n_strata   m, S
     emitter_radiance     (E, 3) radiance of each emitter terminal (W / sr m^2)
     emitter_names        E names (the emitting objects)
-    world_radiance       (3,) radiance of the world terminal
+    world_radiance       (3,) radiance of the world terminal (the world's mean with an environment map)
+    world_bins           (W, 3) radiance of each directional world terminal (an environment map:
+                         the map's mean over the equal-area bin, ``world.bin_of_direction``), or
+                         None: one world terminal of ``world_radiance``
     rays_per_stratum     R
     counts               rays per landing category (points, emitters, world, void reasons)
     seconds              wall time of the build's parts (setup, locator, trace, bin, total)
@@ -68,7 +74,8 @@ class PassiveDynamics:
     warnings             messages for the user (objects mostly buried)
     caster               the :class:`~lmdp_addon.raycast.RayCaster` (BVH) the rays were traced
                          with; the bake of the same scene traces with it too
-    Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E`` world, ``m+E+1`` void.
+    Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E..m+E+W-1`` world (W = 1 for a
+    uniform world), ``m+E+W`` void.
     """
 
     stratum_transitions: sp.csr_matrix
@@ -84,14 +91,26 @@ class PassiveDynamics:
     locator: object = field(default=None, repr=False)
     warnings: list = field(default_factory=list)
     caster: object = field(default=None, repr=False)
+    world_bins: np.ndarray = None
 
     @property
     def n_emitters(self):
         return len(self.emitter_radiance)
 
     @property
+    def n_world(self):
+        """W: world terminals (1 uniform, one per direction bin with an environment map)."""
+        return 1 if self.world_bins is None else len(self.world_bins)
+
+    def world_terminal_radiance(self):
+        """(W, 3) radiance of the world terminals."""
+        if self.world_bins is None:
+            return np.asarray(self.world_radiance, dtype=np.float64).reshape(1, 3)
+        return np.asarray(self.world_bins, dtype=np.float64).reshape(-1, 3)
+
+    @property
     def n_terminals(self):
-        return self.n_emitters + 2
+        return self.n_emitters + self.n_world + 1
 
     @property
     def n_columns(self):
@@ -99,18 +118,24 @@ class PassiveDynamics:
 
     @property
     def world_column(self):
+        """The first world column (the only one for a uniform world)."""
         return self.n_points + self.n_emitters
 
     @property
+    def world_columns(self):
+        return np.arange(self.world_column, self.world_column + self.n_world)
+
+    @property
     def void_column(self):
-        return self.n_points + self.n_emitters + 1
+        return self.n_points + self.n_emitters + self.n_world
 
     @property
     def rays(self):
         return self.n_points * self.n_strata * self.rays_per_stratum
 
     def terminal_labels(self):
-        return [f"emitter:{n}" for n in self.emitter_names] + [WORLD, VOID]
+        world = [WORLD] if self.world_bins is None else [f"{WORLD}:{k}" for k in range(self.n_world)]
+        return [f"emitter:{n}" for n in self.emitter_names] + world + [VOID]
 
     @property
     def row_sum_error(self):
@@ -217,7 +242,8 @@ class _DynamicsBuild:
         self.m, self.S = states.n_points, states.n_strata
         self.emitter_radiance = scene.emitter_groups()[1]
         self.E = len(self.emitter_radiance)
-        self.n_cols = self.m + self.E + 2
+        self.W = world_bin_count(_environment(scene))
+        self.n_cols = self.m + self.E + self.W + 1
         self.face_normals = scene.triangle_geometry()[0]
         # The locator's tables are built on a thread of their own while the BVH is built and the
         # first batches are traced: only the classification of the hits waits for them.
@@ -337,7 +363,7 @@ class _DynamicsBuild:
         tri = np.full(len(dirs), -1, dtype=np.int64)
         dist = np.full(len(dirs), np.inf, dtype=np.float32)
         tri[out], dist[out] = hits[:2]
-        col = np.full(len(dirs), self.m + self.E + 1, dtype=np.int64)
+        col = np.full(len(dirs), self.m + self.E + self.W, dtype=np.int64)
         col[out], c = classifier.classify(origins[out], dirs[out], *hits, workers=1)
         c["void_buried"] = len(dirs) - len(out)
         c["void"] += c["void_buried"]
@@ -408,6 +434,7 @@ class _DynamicsBuild:
             emitter_radiance=np.asarray(self.emitter_radiance, dtype=np.float64),
             emitter_names=scene.emitter_names(),
             world_radiance=np.asarray(scene.world_radiance, dtype=np.float64),
+            world_bins=None if _environment(scene) is None else _environment(scene).bin_radiance(),
             rays_per_stratum=self.R,
             counts=counts,
             seconds={**seconds, "total": time.perf_counter() - self.t0},
@@ -415,6 +442,12 @@ class _DynamicsBuild:
             caster=self.caster,
             warnings=_buried_warnings(scene, states, self.buried),
         )
+
+
+def _environment(scene):
+    """The scene's lit environment map (directional world terminals), or None."""
+    env = getattr(scene, "environment", None)
+    return env if env is not None and env.lit else None
 
 
 def _buried_warnings(scene, states, buried):

@@ -3,16 +3,19 @@
 A closest hit becomes a column of the passive dynamics (see
 :class:`~lmdp_addon.model.dynamics.PassiveDynamics`): a front hit on a state-carrying surface
 goes to the nearest compatible state point (:class:`~lmdp_addon.model.locator.StateLocator`), a
-hit on an emitter to its emitter terminal, a miss to the world terminal (or the void under a
-black world), and everything else to the void.
+hit on an emitter to its emitter terminal, a miss to the world terminal (its direction bin's
+under an environment map, the void under a black world), and everything else to the void.
 """
 import numpy as np
+
+from ..world import bin_of_direction, world_bin_count
 
 
 class HitClassifier:
     """Per-triangle lookup tables that turn closest hits into next-state columns.
 
-    Columns: ``0..m-1`` points, ``m..m+E-1`` emitter terminals, ``m+E`` world, ``m+E+1`` void.
+    Columns: ``0..m-1`` points, ``m..m+E-1`` emitter terminals, ``m+E..m+E+W-1`` world (W = 1,
+    or one per direction bin of an environment map: ``world.bin_of_direction``), ``m+E+W`` void.
     """
 
     def __init__(self, scene, locator, n_points):
@@ -21,8 +24,11 @@ class HitClassifier:
         tri_emitter, emitter_radiance = scene.emitter_groups()
         E = len(emitter_radiance)
         self.n_points = n_points
+        env = getattr(scene, "environment", None)
+        self.environment = env if env is not None and env.lit else None
+        W = world_bin_count(self.environment)
         self.world_col = n_points + E
-        self.void_col = n_points + E + 1
+        self.void_col = n_points + E + W
         self.world_lit = bool(np.any(scene.world_radiance > 0))
         carries = scene.object_carries_states[scene.triangle_object] & (tri_emitter < 0)
         # Column of a front hit for every triangle (-1: carrier, look the point up), plus a
@@ -46,6 +52,9 @@ class HitClassifier:
         t = np.where(tri >= 0, tri, T)
         front = np.einsum("ij,ij->i", np.take(self.normals, t, axis=0), directions) < 0.0
         col = np.where(front, np.take(self.front_col, t), np.take(self.back_col, t))
+        if self.environment is not None:   # directional world terminals: the escape's bin
+            miss = np.flatnonzero(tri < 0)
+            col[miss] = self.world_col + bin_of_direction(directions[miss])
         n_miss = int(np.count_nonzero(tri < 0))
         counts = {"world": n_miss if self.world_lit else 0,
                   "void_escape": 0 if self.world_lit else n_miss}

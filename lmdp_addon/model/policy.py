@@ -72,7 +72,7 @@ def stratum_policy(dynamics, solution, columns="all"):
     elif columns == "points+world":
         keep = np.zeros(dynamics.n_columns, dtype=bool)
         keep[:m] = True
-        keep[dynamics.world_column] = True
+        keep[dynamics.world_columns] = True
         Pk = sp.csr_matrix(Pk.multiply(keep[None, :]))
     elif columns != "all":
         raise ValueError(f"columns must be 'all', 'points' or 'points+world', not {columns!r}")

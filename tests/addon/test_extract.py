@@ -413,7 +413,7 @@ def test_light_options_disk_exposure_and_skipped_lights(fresh_scene, extract):
     assert any("Disk" in w and "same area" in w for w in sa.warnings)
 
 
-def test_world_background_colour_strength_and_texture_mean(fresh_scene, extract):
+def test_world_background_colour_strength_and_environment_map(fresh_scene, extract):
     assert np.all(extract.extract_scene(bpy.context, []).world_radiance == 0)  # no world: black
     world = bpy.data.worlds.new("Sky")
     bpy.context.scene.world = world
@@ -421,7 +421,8 @@ def test_world_background_colour_strength_and_texture_mean(fresh_scene, extract)
     background.inputs["Color"].default_value = (0.5, 0.25, 1.0, 1)
     background.inputs["Strength"].default_value = 2.0
     np.testing.assert_allclose(extract.extract_scene(bpy.context, []).world_radiance, (1.0, 0.5, 2.0), rtol=1e-6)
-    # An equirectangular map: rows weighted by cos(latitude); bright top half, dark bottom.
+    # An equirectangular map (issue 19): an environment map x Strength; world_radiance is its
+    # mean over the sphere (bright top half, dark bottom: half), and nothing is approximated.
     pixels = np.ones((4, 8, 4), np.float32)
     pixels[:2, :, :3] = 0.0
     env = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
@@ -429,7 +430,12 @@ def test_world_background_colour_strength_and_texture_mean(fresh_scene, extract)
     world.node_tree.links.new(env.outputs["Color"], background.inputs["Color"])
     sa = extract.extract_scene(bpy.context, [])
     np.testing.assert_allclose(sa.world_radiance, 2.0 * 0.5, rtol=1e-6)
-    assert any("World 'Sky'" in w and "'Env'" in w for w in sa.warnings)
+    assert sa.environment is not None and sa.environment.radiance.shape == (4, 8, 3)
+    # the centres of the top and bottom rows (between them Cycles' periodic lookup blends)
+    z = np.cos(np.pi / 8)
+    centres = np.array([[0.0, np.sqrt(1 - z * z), z], [0.0, np.sqrt(1 - z * z), -z]])
+    np.testing.assert_allclose(sa.environment.radiance_at(centres), [[2.0] * 3, [0.0] * 3], atol=1e-5)
+    assert not any("World 'Sky'" in w for w in sa.warnings), sa.warnings
 
 
 def test_instances_are_extracted_in_world_space(fresh_scene, extract):

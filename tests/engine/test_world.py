@@ -7,7 +7,7 @@ bounds every pixel's count by 5 binomial standard deviations.
 import numpy as np
 import pytest
 
-from bake_scenes import SKY, assert_within, expected_patch_indirect, patch_under_sky, trace_at
+from bake_scenes import PATCH_ALBEDO, SKY, assert_within, expected_patch_indirect, patch_under_sky, trace_at
 from lmdp_addon.bake.tracer import IndirectTracer
 from lmdp_addon.world import EnvironmentMap, bin_of_direction, WORLD_BINS_PHI, WORLD_BINS_Z
 
@@ -159,3 +159,31 @@ def test_patch_under_environment(mode):
     expected = expected_patch_indirect() * share
     assert_within(values, expected, extra=1e-3 * expected)
     assert stats.shadow_rays > 0.4 * stats.vertices    # world next-event estimation ran
+
+
+# ---- the LMDP's directional world terminal -----------------------------------------------------
+
+def test_lmdp_world_terminal_is_directional():
+    """PHYSICAL build of the patch under a map bright only below the horizon towards +x (bins
+    aligned with the bright region): escapes go to 32 world terminals, z of the patch's underside
+    is ρ L / 2 (it sees half of its hemisphere lit), where the one mean-radiance world terminal
+    would give ρ L / 4; the passive dynamics' rows still sum to 1."""
+    from lmdp_addon.model import pipeline
+    from lmdp_addon.settings import Settings
+    H, W = 32, 64
+    img = np.full((H, W, 3), SKY, np.float32)
+    img[H // 2:] = 0.0
+    img[:, :W // 4] = 0.0
+    img[:, 3 * W // 4:] = 0.0
+    scene = with_environment(patch_under_sky(), img)
+    result = pipeline.run_all(scene, Settings(point_count=256, cost_mode="PHYSICAL"))
+    dyn = result.dynamics
+    assert dyn.n_world == WORLD_BINS_Z * WORLD_BINS_PHI
+    assert dyn.void_column == dyn.n_points + dyn.n_emitters + dyn.n_world
+    assert dyn.row_sum_error < 1e-4
+    labels = dyn.terminal_labels()
+    assert labels[-1] == "void" and labels[dyn.n_emitters] == "world:0"
+    patch = result.states.point_object == scene.object_names.index("Patch")
+    under = patch & (result.states.normals[:, 2] < 0)
+    z = result.solution.z[under].mean(axis=0)
+    np.testing.assert_allclose(z, np.asarray(PATCH_ALBEDO) * SKY * 0.5, rtol=0.03)
