@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from helpers import add_material, select
+from helpers import add_material
 
 
 @pytest.fixture
