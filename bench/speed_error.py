@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import metrics
+from . import metrics, world_scene
 from .blender_session import SENTINEL
 from .common import RESULTS, ROOT, Stopwatch, log
 from .methods import CyclesBake, LMDPBake, lmdp_bake_available
@@ -36,6 +36,8 @@ CASES = {
     "narrow_opening": dict(title="Narrow opening, floor of the room lit only through the hatch",
                            kind="NARROW_OPENING", receiver="RoomAFloor"),
     "heavy": dict(title="Heavy Cornell box (bumpy, subdivided), floor", kind="HEAVY", receiver="Floor"),
+    "sun_hdri": dict(title="Cornell box without its lamp under city.exr, its sun through the open front, floor",
+                     kind="CORNELL_BOX", receiver="Floor", world=True),
 }
 
 #: Seeds of the two reference halves, and the first seed of the compared runs.
@@ -99,6 +101,10 @@ def geometry_hash(scene):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update("\0".join(scene.object_names).encode())
     h.update((ROOT / "operators" / "adapters" / "demo_scenes.py").read_bytes())
+    if getattr(scene, "environment", None) is not None:        # the sun + HDRI scene
+        for a in scene.environment.fingerprint_arrays():
+            h.update(np.ascontiguousarray(a).tobytes())
+        h.update(world_scene.SOURCE.read_bytes())
     return h.hexdigest()
 
 
@@ -171,6 +177,8 @@ def prepare_case(key, profile, blender, cache_dir):
     case.blender = blender
     with Stopwatch() as sw:
         blender.load_scene(case.kind)
+        if spec.get("world"):
+            case.scene = world_scene.build(blender)
     case.info["blender_scene_seconds"] = sw.seconds
     a, b, meta = load_or_bake_reference(case, cache_dir)
     case.rows, case.cols, coverage = scored_texels(case, a, b)
