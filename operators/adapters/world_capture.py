@@ -180,8 +180,14 @@ class WorldReader:
                 return None
         pixels = image_radiance(tex.image)
         if pixels is None:
-            self.warn(f"{owner}: image '{tex.image.name}' of '{tex.name}' has no pixels: the world is black")
+            self.warn(f"{owner}: image '{tex.image.name}' of Environment Texture '{tex.name}' has no pixels "
+                      "(a missing file? Cycles shows it magenta): LMDP treats the world as black; fix the "
+                      "image's path or pack it")
             return EnvironmentMap(np.zeros((1, 1, 3), np.float32), name=owner)
+        bad = int(np.count_nonzero(~np.isfinite(pixels).all(axis=2)))
+        if bad:
+            self.warn(f"{owner}: image '{tex.image.name}' has {bad} pixel{'s' if bad > 1 else ''} that are "
+                      "not finite numbers (Inf or NaN); LMDP treats them as black")
         interpolation = _INTERPOLATION.get(tex.interpolation, "LINEAR")
         if tex.interpolation not in ('Linear', 'Closest'):
             self.warn(f"{owner}: Environment Texture '{tex.name}' uses {tex.interpolation} interpolation; "
