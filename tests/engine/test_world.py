@@ -187,3 +187,33 @@ def test_lmdp_world_terminal_is_directional():
     under = patch & (result.states.normals[:, 2] < 0)
     z = result.solution.z[under].mean(axis=0)
     np.testing.assert_allclose(z, np.asarray(PATCH_ALBEDO) * SKY * 0.5, rtol=0.03)
+
+
+@pytest.mark.parametrize("mode", ["GUIDED", "FINAL_GATHER"])
+def test_solved_modes_under_environment(mode):
+    """GUIDED and FINAL_GATHER on the PHYSICAL solution of the patch under the +x ground map:
+    the receiver's indirect light is ρ L F / 2 (as UNGUIDED's). FINAL_GATHER samples the map's
+    direct light at the patch itself and reads no world terminal in ẑ (which holds no light
+    here: the patch sees nothing but the world), so it is unbiased too; reading both would
+    double it."""
+    from lmdp_addon.bake.gather import build_gather
+    from lmdp_addon.bake.guide import build_guide
+    from lmdp_addon.model import pipeline
+    from lmdp_addon.settings import Settings
+    H, W = 32, 64
+    img = np.full((H, W, 3), SKY, np.float32)
+    img[H // 2:] = 0.0
+    img[:, :W // 4] = 0.0
+    img[:, 3 * W // 4:] = 0.0
+    scene = with_environment(patch_under_sky(), img)
+    lmdp = pipeline.run_all(scene, Settings(point_count=512, cost_mode="PHYSICAL"))
+    guide = build_guide(scene, lmdp)
+    gather = build_gather(guide, lmdp, 4) if mode == "FINAL_GATHER" else None
+    tracer = IndirectTracer(scene, mode, max_bounces=4, guide=guide, gather=gather)
+    state = guide.states_at(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0]))[0]
+    values, stats = trace_at(tracer, (0.0, 0.0, 0.0), (0, 0, 1), 100_000, seed=4, state=state)
+    expected = expected_patch_indirect() * 0.5
+    assert_within(values, expected, extra=2e-3 * expected)
+    if mode == "FINAL_GATHER":
+        patch = lmdp.states.point_object == scene.object_names.index("Patch")
+        assert stats.gathered > 0 and np.abs(gather.irradiance[patch]).max() < 1e-2 * SKY
