@@ -276,3 +276,17 @@ def test_hdri_lit_room_solved_modes(fresh_scene, lmdp_ext, demo, mode):
         assert np.all(np.abs(rel) < 0.02), rel
     else:
         assert np.all(np.abs(rel) < 0.05), rel
+
+
+def test_warping_mapping_matches_cycles(fresh_scene, lmdp_ext, demo):
+    """city.exr through a Mapping that squashes directions (scale z 2, turned 40° about z): not
+    a rotation, so the capture evaluates it for every direction of a table (with a warning);
+    the bake still matches Cycles'."""
+    cycles_scene(fresh_scene)
+    courtyard()
+    world = world_image(bpy.data.images.load(bundled_hdri("city.exr")), strength=0.5,
+                        rotation=(0.0, 0.0, np.radians(40.0)))
+    world.node_tree.nodes["Mapping"].inputs["Scale"].default_value = (1.0, 1.0, 2.0)
+    arrays = lmdp_ext.sub("operators.adapters.extract").extract_scene(bpy.context, [bpy.data.objects["Floor"]])
+    assert any("Mapping" in w and "every direction" in w for w in arrays.warnings), arrays.warnings
+    check(lmdp_ext, demo, "Floor", label="city.exr warped")
