@@ -210,8 +210,8 @@ class WorldReader:
                   "samples per pixel; Light Path nodes see that render's camera rays)")
         try:
             pixels = render_world(world, w, h, RENDER_SAMPLES)
-        except RuntimeError as exc:
-            self.warn(f"{owner}: the render of the world failed ({exc}); the world is treated as black")
+        except Exception as exc:      # any failure of the render: the capture goes on without it
+            self.warn(f"{owner}: the render of the world failed ({exc}); LMDP treats the world as black")
             return _BLACK, None
         return self._result(EnvironmentMap(pixels, interpolation="LINEAR", name=f"{owner} (rendered)"))
 
