@@ -14,7 +14,8 @@
   size (bilinear), with a warning naming the node;
 * anything else (Sky Texture, gradients, Mix shaders, a Mirror Ball projection, ...): the world is
   rendered once into an equirectangular map by Cycles (:func:`render_world`: a panoramic camera
-  looking along +x, which Cycles aligns with the Environment Texture's convention) with a
+  looking along +x, which Cycles aligns with the Environment Texture's convention; small bright
+  features such as a sun disc rendered again with more samples, :func:`refined_render`) with a
   warning naming the world and the node; Light Path tricks see the camera rays of that render.
 
 A world whose Ray Visibility excludes diffuse rays lights nothing in a diffuse bake: black, with
@@ -33,6 +34,13 @@ _NODES_OPTIONAL = bpy.app.version < (5, 0, 0)
 #: Size and samples of the equirectangular render of a world tree the capture cannot read.
 RENDER_SIZE = (256, 128)
 RENDER_SAMPLES = 16
+#: Small bright features of the render (a sun disc) are rendered again with HOT_SAMPLES: pixels
+#: above HOT_FACTOR x the median luminance, HOT_MARGIN pixels around them, if their box covers
+#: at most HOT_MAX_SHARE of the map.
+HOT_SAMPLES = 4096
+HOT_FACTOR = 100.0
+HOT_MARGIN = 2
+HOT_MAX_SHARE = 0.01
 _INTERPOLATION = {'Linear': "LINEAR", 'Closest': "CLOSEST", 'Cubic': "LINEAR", 'Smart': "LINEAR"}
 _DIRECTION_COORDINATES = {'Generated', 'Object'}
 
@@ -209,7 +217,7 @@ class WorldReader:
                   f"world once into a {w} x {h} equirectangular map with Cycles ({RENDER_SAMPLES} "
                   "samples per pixel; Light Path nodes see that render's camera rays)")
         try:
-            pixels = render_world(world, w, h, RENDER_SAMPLES)
+            pixels = refined_render(world, w, h, RENDER_SAMPLES)
         except Exception as exc:      # any failure of the render: the capture goes on without it
             self.warn(f"{owner}: the render of the world failed ({exc}); LMDP treats the world as black")
             return _BLACK, None
@@ -236,12 +244,34 @@ def _resampled(env, warp):
     return env.radiance_at(m).reshape(H, W, 3)
 
 
-def render_world(world, width, height, samples):
+def refined_render(world, width, height, samples):
+    """:func:`render_world` at ``samples``, then the small bright features (a sun disc covers a
+    fraction of a pixel, and ``samples`` samples find it a few times) rendered again with
+    :data:`HOT_SAMPLES`: the pixels brighter than :data:`HOT_FACTOR` x the map's median
+    luminance, dilated by :data:`HOT_MARGIN` pixels, when their bounding box is small (a render
+    border); each pixel of either render is an unbiased estimate of its mean radiance."""
+    pixels = render_world(world, width, height, samples)
+    lum = pixels.max(axis=2)
+    hot = lum > HOT_FACTOR * max(float(np.median(lum)), 1e-12)
+    if not hot.any():
+        return pixels
+    rows, cols = np.nonzero(hot)
+    r0, r1 = max(rows.min() - HOT_MARGIN, 0), min(rows.max() + HOT_MARGIN + 1, height)
+    c0, c1 = max(cols.min() - HOT_MARGIN, 0), min(cols.max() + HOT_MARGIN + 1, width)
+    if (r1 - r0) * (c1 - c0) > HOT_MAX_SHARE * width * height:
+        return pixels
+    fine = render_world(world, width, height, HOT_SAMPLES, border=(c0 / width, c1 / width, r0 / height, r1 / height))
+    pixels[r0:r1, c0:c1] = fine[r0:r1, c0:c1]
+    return pixels
+
+
+def render_world(world, width, height, samples, border=None):
     """(height, width, 3) float32 radiance of ``world`` rendered by Cycles with an
     equirectangular panoramic camera looking along +x (Cycles turns panoramic cameras so that
     one pointed along +x sees the Environment Texture's centre: the table is in the map
     convention of ``lmdp_addon.world``), a 1-pixel box filter (each pixel the mean over its
-    solid angle) and ``samples`` samples. A scratch scene, camera and image are removed
+    solid angle) and ``samples`` samples; ``border (x0, x1, y0, y1)`` (fractions of the image,
+    y from the bottom) renders only that region (the rest is black). A scratch scene, camera and image are removed
     afterwards; the user's scenes are not touched. Raises RuntimeError when the render fails."""
     scene = bpy.data.scenes.new("LMDP world capture")
     cam_data = bpy.data.cameras.new("LMDP world capture")
@@ -273,6 +303,9 @@ def render_world(world, width, height, samples):
         cycles.pixel_filter_type = 'BOX'
         cycles.filter_width = 1.0
         cycles.seed = 0
+        if border is not None:
+            render.use_border, render.use_crop_to_border = True, False
+            render.border_min_x, render.border_max_x, render.border_min_y, render.border_max_y = border
         with bpy.context.temp_override(scene=scene):
             result = bpy.ops.render.render(write_still=True, scene=scene.name)
         if result != {'FINISHED'} or not os.path.exists(path):

@@ -290,3 +290,21 @@ def test_warping_mapping_matches_cycles(fresh_scene, lmdp_ext, demo):
     arrays = lmdp_ext.sub("operators.adapters.extract").extract_scene(bpy.context, [bpy.data.objects["Floor"]])
     assert any("Mapping" in w and "every direction" in w for w in arrays.warnings), arrays.warnings
     check(lmdp_ext, demo, "Floor", label="city.exr warped")
+
+
+def test_sky_texture_world_matches_cycles(fresh_scene, lmdp_ext, demo):
+    """A physical Sky Texture (multiple scattering) (its sun disc 35° up, towards -x+y) is rendered into the map: the
+    sun disc's light is kept by the render's box filter, and the bake matches Cycles'."""
+    cycles_scene(fresh_scene)
+    courtyard()
+    world = world_background((0.0, 0.0, 0.0), 0.2)
+    nodes, links = world.node_tree.nodes, world.node_tree.links
+    sky = nodes.new("ShaderNodeTexSky")
+    sky.sky_type = 'MULTIPLE_SCATTERING'
+    sky.sun_elevation = np.radians(35.0)
+    sky.sun_rotation = np.radians(130.0)
+    links.new(sky.outputs["Color"], nodes["Background"].inputs["Color"])
+    arrays = lmdp_ext.sub("operators.adapters.extract").extract_scene(bpy.context, [bpy.data.objects["Floor"]])
+    assert arrays.environment is not None
+    assert any("Sky Texture" in w and "renders the world" in w for w in arrays.warnings), arrays.warnings
+    check(lmdp_ext, demo, "Floor", label="sky texture")
