@@ -216,6 +216,12 @@ class WorldReader:
         self.warn(f"{owner}: '{node.name}' ({node.bl_label}) is not read directly; LMDP renders the "
                   f"world once into a {w} x {h} equirectangular map with Cycles ({RENDER_SAMPLES} "
                   "samples per pixel; Light Path nodes see that render's camera rays)")
+        paths = [n.name for n in world.node_tree.nodes if n.type == 'LIGHT_PATH' and not n.mute]
+        if paths:
+            self.warn(f"{owner} uses Light Path {', '.join(repr(n) for n in paths)}: the rendered map shows "
+                      "what camera rays see, while Cycles' bake sees the world through diffuse rays; if the "
+                      "tree switches on the ray type (e.g. Is Camera Ray), connect the lighting branch to "
+                      "the World Output for the bake")
         try:
             pixels = refined_render(world, w, h, RENDER_SAMPLES)
         except Exception as exc:      # any failure of the render: the capture goes on without it

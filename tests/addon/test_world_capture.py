@@ -93,3 +93,23 @@ def test_mapping_that_warps_directions_is_evaluated_per_direction(fresh_scene, c
     _, env = capture.WorldReader(warnings).capture(world)
     assert env is not None and np.allclose(env.rotation, np.eye(3))
     assert any("'Squash'" in w and "every direction" in w for w in warnings), warnings
+
+
+def test_light_path_world_is_named(fresh_scene, capture):
+    """A world that switches on the ray type can only be rendered as the camera sees it: the
+    warning names the Light Path node and says what to do; the map is what the camera sees (the
+    Background's white, Is Camera Ray = 1)."""
+    world, tex = env_world(np.ones((4, 8, 4), np.float32))
+    nodes, links = world.node_tree.nodes, world.node_tree.links
+    path = nodes.new("ShaderNodeLightPath")
+    path.name = "Camera?"
+    mix = nodes.new("ShaderNodeMixShader")
+    links.new(path.outputs["Is Camera Ray"], mix.inputs["Fac"])
+    links.new(nodes["Background"].outputs[0], mix.inputs[2])         # what the camera sees
+    links.new(mix.outputs[0], nodes["World Output"].inputs["Surface"])
+    warnings = []
+    radiance, env = capture.WorldReader(warnings).capture(world)
+    assert env is not None
+    np.testing.assert_allclose(radiance, 1.0, rtol=1e-3)
+    assert any("'Camera?'" in w and "Light Path" in w and "diffuse rays" in w for w in warnings), warnings
+    assert any("renders the world" in w and "'Mix Shader'" in w for w in warnings), warnings
