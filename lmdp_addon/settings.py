@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 COST_MODES = ("THESIS", "PHYSICAL")
 SOLVERS = ("POWER", "DIRECT", "ITERATIVE")
-BAKE_MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
+BAKE_MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
 #: Where the bake's path length comes from (``scene.lmdp.light_paths``): the scene's Cycles
 #: Light Paths, or ``Settings.max_bounces``.
 LIGHT_PATHS = ("SCENE", "CUSTOM")

@@ -36,6 +36,7 @@ from ..sampling import stratified_first_uniforms
 from .checks import check_bake, check_texels, object_index, object_texels
 from .gather import build_gather
 from .guide import build_guide
+from .residual import ControlVariate
 from .results import IMAGE_SUFFIX, BakeResult, ObjectBake
 from .texels import dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
@@ -168,9 +169,20 @@ def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_num
             parts.append((fp.position.reshape(k, 3), fp.normal.reshape(k, 3), u.reshape(k, 2),
                           u_mix.reshape(k)))
         position, normal, u, u_mix = (np.concatenate(p) if group > 1 else p[0] for p in zip(*parts))
+        control = np.zeros((k * group, 3), np.float32) if tracer.control is not None else None
         values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
-                                  u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group))
-        return unit_id, values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64), st
+                                  u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group),
+                                  control_out=control)
+        if control is not None:              # RESIDUAL: the paths estimate f - g (residual.py)
+            values -= control
+        sums = values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64)
+        if control is not None:              # ... and the control samples E[g], ratio x as many
+            ratio = tracer.control.ratio
+            for i, b in enumerate(range(b0, b0 + group)):
+                g, cst = tracer.control.samples(tracer, sub, triangles[lo:hi], per_batch, b == 0, rng)
+                sums[i] += g / ratio
+                st.add(cst)
+        return unit_id, sums, st
 
     total = len(units)
     pending = {}
@@ -213,16 +225,21 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
     mode = settings.bake_mode
     guide = gather = None
     info = {}
-    if mode in ("GUIDED", "FINAL_GATHER"):
+    control = None
+    if mode in ("GUIDED", "FINAL_GATHER", "RESIDUAL"):
         guide = build_guide(scene, lmdp)
         info = {"same_scene": bool(guide.same_scene), "points": int(lmdp.states.n_points),
                 "strata": int(lmdp.states.n_strata), "cost_mode": lmdp.solution.cost_mode}
-        if mode == "FINAL_GATHER":
+        if mode in ("FINAL_GATHER", "RESIDUAL"):
             gather = build_gather(guide, lmdp, settings.max_bounces, seed=settings.seed)
-        if caster is None and guide.same_scene:  # same geometry: the build's BVH serves
+        if mode == "RESIDUAL":    # cosine paths: the guide only serves the gather's locator
+            control = ControlVariate(gather)
+            info["control_ratio"] = control.ratio
+            guide = None
+        if caster is None and info["same_scene"]:  # same geometry: the build's BVH serves
             caster = lmdp.dynamics.caster
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
-                            guide_fraction=settings.guide_fraction, caster=caster)
+                            guide_fraction=settings.guide_fraction, caster=caster, control=control)
     return tracer, guide, info
 
 
