@@ -31,7 +31,7 @@ class Settings:
     tolerance: float = 1e-8           #: relative change / residual at which the solver stops
     max_iterations: int = 10000       #: iteration cap of POWER and ITERATIVE
     # Bake (guided path tracing)
-    bake_mode: str = "GUIDED"         #: 'UNGUIDED', 'GUIDED' or 'FINAL_GATHER'
+    bake_mode: str = "GUIDED"         #: 'UNGUIDED', 'GUIDED', 'FINAL_GATHER' or 'RESIDUAL'
     bake_resolution: int = 128        #: lightmap width = height in pixels
     bake_samples: int = 64            #: paths per texel
     bake_margin: int = 16             #: texels of dilation around UV islands (like Cycles)
@@ -42,6 +42,8 @@ class Settings:
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
     memory_budget_gb: float = 8.0     #: refuse builds and bakes whose memory estimate exceeds this (GiB)
+    # Bake threads (issue 20)
+    bake_threads: int = 0             #: most threads a bake runs on (0: every core, os.cpu_count())
 
     @property
     def strata_count(self):

@@ -38,6 +38,9 @@ BAKE_MODE_ITEMS = (
     ("FINAL_GATHER", "Final Gather",
      "One guided bounce, then the PHYSICAL-mode solution's indirect light at the hit plus the "
      "direct light sampled there: fast, biased by the discretisation"),
+    ("RESIDUAL", "Residual",
+     "Unbiased: the PHYSICAL-mode solution's first-bounce gather as a control variate, its mean "
+     "from cheap one-bounce samples and the paths tracing only the residual"),
 )
 LIGHT_PATHS_ITEMS = (
     ("SCENE", "Scene",
@@ -198,6 +201,13 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         name="Memory Budget",
         description="Refuse to build or bake problems whose estimated memory exceeds this (GiB)",
         default=_DEFAULTS.memory_budget_gb, min=0.01, max=4096.0, soft_max=64.0, precision=2,
+    )
+    # -- Bake threads (issue 20) ---------------------------------------------------------------------
+    bake_threads: IntProperty(
+        name="Bake Threads",
+        description="Most threads a bake runs on; 0 uses every core of the machine (threads). "
+                    "The result is the same for a seed whatever the count",
+        default=_DEFAULTS.bake_threads, min=0, max=1024, soft_max=64,
     )
 
     # -- Display (visualisation of z / J / u* in the viewport) --------------------------------------

@@ -262,11 +262,12 @@ def check_bake_memory(scene, names, indices, settings):
     """The bake's estimated peak memory (bytes, ``memory.estimate_bake_bytes``) from an upper
     bound on each object's texels (``texels.texel_count_bound``: no rasterisation); raises
     :class:`BudgetError` when it exceeds ``settings.memory_budget_gb``."""
-    from .driver import BAKE_THREADS, PATHS_PER_UNIT   # the driver imports this module
+    from .driver import PATHS_PER_UNIT, bake_threads   # the driver imports this module
     R = int(settings.bake_resolution)
     counts = [texel_count_bound(scene.triangle_uv[(scene.triangle_object == i) & scene.usable_triangles()], R)
               for i in indices]
-    need = estimate_bake_bytes(counts, R, int(settings.bake_samples), scene.n_triangles, BAKE_THREADS,
+    need = estimate_bake_bytes(counts, R, int(settings.bake_samples), scene.n_triangles,
+                               bake_threads(getattr(settings, "bake_threads", 0)),
                                PATHS_PER_UNIT)
     budget = settings.memory_budget_gb
     if budget is not None and need > float(budget) * 1024 ** 3:

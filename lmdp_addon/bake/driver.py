@@ -26,6 +26,7 @@ Walk of one bake: :func:`bake` -> ``checks.check_bake`` (unless given its plan) 
 :func:`make_tracer` (``guide.build_guide``, ``gather.build_gather``) -> :func:`bake_object` per
 object (:func:`work_units`, ``IndirectTracer.trace`` per unit) -> ``results.BakeResult``.
 """
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 
@@ -42,14 +43,26 @@ from .texels import dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
 
 # The operators read BakeResult, ObjectBake and IMAGE_SUFFIX here.
-__all__ = ["bake", "bake_object", "make_tracer", "work_units", "batch_count", "PATHS_PER_UNIT",
-           "BAKE_THREADS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
+__all__ = ["bake", "bake_object", "make_tracer", "work_units", "batch_count", "bake_threads", "PATHS_PER_UNIT",
+           "BAKE_THREADS", "MIN_UNITS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
 
 #: Most paths traced by one work unit (memory: ~0.5 KiB per path in flight, so ~64 MiB per
 #: unit). Larger units amortise the per-bounce Python overhead of the wavefront loop.
 PATHS_PER_UNIT = 1 << 17
-#: Work units in flight (the machine's cores; embree and numpy release the GIL).
-BAKE_THREADS = 2
+#: Fewest work units a bake is cut into where the texels allow it (:func:`work_units`). A
+#: constant, not the thread count: the units, hence the result, do not depend on the machine.
+MIN_UNITS = 2
+
+
+def bake_threads(cap=0):
+    """Work units in flight: the machine's cores (``os.cpu_count()``; embree and numpy release
+    the GIL), at most ``cap`` when it is positive (``Settings.bake_threads``)."""
+    cores = max(1, int(os.cpu_count() or 1))
+    return min(cores, int(cap)) if int(cap or 0) > 0 else cores
+
+
+#: Work units in flight by default (every core).
+BAKE_THREADS = bake_threads()
 #: Most independent batches per texel (for the standard error).
 MAX_BATCHES = 8
 #: Texels whose nearest states are looked up at once.
@@ -70,10 +83,10 @@ def work_units(n_texels, batches, per_batch):
     smaller than that (few samples per batch), whole batches share a unit: a small wavefront
     costs about as much Python overhead per bounce as a large one, and threads overlap better on
     long numpy calls. Texel chunks are of equal size (no small remainder unit). There are at
-    least :data:`BAKE_THREADS` units where the texels allow it (whatever the number of threads a
+    least :data:`MIN_UNITS` units where the texels allow it (whatever the number of threads a
     bake runs on, so that its result does not depend on it).
     """
-    threads = BAKE_THREADS
+    threads = MIN_UNITS
     per_batch_paths = max(1, n_texels * per_batch)
     n_chunks = max(1, -(-per_batch_paths // PATHS_PER_UNIT))
     group = 1
@@ -91,7 +104,7 @@ def work_units(n_texels, batches, per_batch):
 # ---- the bake of one object -------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
-                threads=BAKE_THREADS, texels=None):
+                threads=None, texels=None):
     """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``texels``: its
     ``(TexelSet, triangles)`` at ``settings.bake_resolution`` if the caller has them
     (``BakePlan.texels``), else they are rasterised here."""
@@ -101,6 +114,7 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     R = int(settings.bake_resolution)
     N = int(settings.bake_samples)
     ts, tris = texels if texels is not None else object_texels(scene, index, R)
+    threads = bake_threads(getattr(settings, "bake_threads", 0)) if threads is None else int(threads)
     n_tex = len(ts)
     B = batch_count(N)
     states = np.full(n_tex, -1, dtype=np.int64)
@@ -243,7 +257,7 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
     return tracer, guide, info
 
 
-def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=BAKE_THREADS,
+def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=None,
          plan=None):
     """Bake the lightmaps of the objects ``names`` of ``scene`` (module docstring).
 
@@ -254,7 +268,7 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     lmdp      anything with ``scene``, ``states``, ``dynamics``, ``solution`` (e.g.
               ``pipeline.LMDPResult``): required by GUIDED and FINAL_GATHER
     precompute_seconds  {'sample', 'build', 'solve'} wall times to report with the bake
-    threads   work units in flight
+    threads   work units in flight (None: :func:`bake_threads` of ``settings.bake_threads``)
     plan      the :class:`~lmdp_addon.bake.checks.BakePlan` of ``checks.check_bake`` for these
               arguments: no check runs again and its texels are used (a plan whose texel checks
               are still to run gets them here first: ``checks.check_texels``, a "texels" step
