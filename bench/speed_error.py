@@ -38,6 +38,9 @@ CASES = {
     "heavy": dict(title="Heavy Cornell box (bumpy, subdivided), floor", kind="HEAVY", receiver="Floor"),
 }
 
+#: Name of the Cycles-with-path-guiding curve.
+CYCLES_GUIDED = "Cycles + path guiding"
+
 #: Seeds of the two reference halves, and the first seed of the compared runs.
 REFERENCE_SEEDS = (1, 2)
 FIRST_SEED = 100
@@ -55,14 +58,18 @@ class Profile:
     bounces: int
     cycles_ladder: tuple
     #: LMDP methods after Cycles, in run order: dicts with ``mode`` ('UNGUIDED', 'GUIDED',
-    #: 'FINAL_GATHER'), ``name``, ``ladder``, optional ``settings`` (overrides of the engine's
-    #: ``Settings`` defaults) and ``cases`` (the cases it runs on; default all).
+    #: 'FINAL_GATHER', 'RESIDUAL'), ``name``, ``ladder``, optional ``settings`` (overrides of the
+    #: engine's ``Settings`` defaults) and ``cases`` (the cases it runs on; default all).
     lmdp_methods: list = field(default_factory=list)
+    #: Sample counts of Cycles with path guiding on (Open PGL), a column beside Cycles; () = not run.
+    cycles_guided_ladder: tuple = ()
 
 
 def method_plan(profile, case_key):
     """The methods of one case, in run order: Cycles first, then the profile's LMDP entries."""
     methods = [CyclesBake(profile.cycles_ladder)]
+    if profile.cycles_guided_ladder:
+        methods.append(CyclesBake(profile.cycles_guided_ladder, name=CYCLES_GUIDED, guiding=True))
     ok, _ = lmdp_bake_available()
     if not ok:
         return methods

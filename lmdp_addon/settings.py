@@ -42,8 +42,6 @@ class Settings:
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
     memory_budget_gb: float = 8.0     #: refuse builds and bakes whose memory estimate exceeds this (GiB)
-    # Bake threads (issue 20)
-    bake_threads: int = 0             #: most threads a bake runs on (0: every core, os.cpu_count())
 
     @property
     def strata_count(self):

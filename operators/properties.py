@@ -202,13 +202,6 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         description="Refuse to build or bake problems whose estimated memory exceeds this (GiB)",
         default=_DEFAULTS.memory_budget_gb, min=0.01, max=4096.0, soft_max=64.0, precision=2,
     )
-    # -- Bake threads (issue 20) ---------------------------------------------------------------------
-    bake_threads: IntProperty(
-        name="Bake Threads",
-        description="Most threads a bake runs on; 0 uses every core of the machine (threads). "
-                    "The result is the same for a seed whatever the count",
-        default=_DEFAULTS.bake_threads, min=0, max=1024, soft_max=64,
-    )
 
     # -- Display (visualisation of z / J / u* in the viewport) --------------------------------------
     display_quantity: EnumProperty(

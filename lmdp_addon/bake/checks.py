@@ -267,7 +267,7 @@ def check_bake_memory(scene, names, indices, settings):
     counts = [texel_count_bound(scene.triangle_uv[(scene.triangle_object == i) & scene.usable_triangles()], R)
               for i in indices]
     need = estimate_bake_bytes(counts, R, int(settings.bake_samples), scene.n_triangles,
-                               bake_threads(getattr(settings, "bake_threads", 0)),
+                               bake_threads(),
                                PATHS_PER_UNIT)
     budget = settings.memory_budget_gb
     if budget is not None and need > float(budget) * 1024 ** 3:

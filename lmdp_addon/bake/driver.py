@@ -54,11 +54,21 @@ PATHS_PER_UNIT = 1 << 17
 MIN_UNITS = 2
 
 
-def bake_threads(cap=0):
-    """Work units in flight: the machine's cores (``os.cpu_count()``; embree and numpy release
-    the GIL), at most ``cap`` when it is positive (``Settings.bake_threads``)."""
-    cores = max(1, int(os.cpu_count() or 1))
-    return min(cores, int(cap)) if int(cap or 0) > 0 else cores
+#: Environment variable that caps the bake's threads (a positive integer; unset: every core).
+THREADS_VARIABLE = "LMDP_BAKE_THREADS"
+
+
+def bake_threads(cap=None):
+    """Work units in flight: the machine's cores (``os.cpu_count()``, or the CPUs this process
+    may run on where the system says; embree and numpy release the GIL), at most ``cap`` when it
+    is positive; ``cap=None`` reads :data:`THREADS_VARIABLE` (unset, empty or not a positive
+    integer: no cap)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cores = max(1, int(cores or 1))
+    if cap is None:
+        value = os.environ.get(THREADS_VARIABLE, "").strip()
+        cap = int(value) if value.isdigit() else 0
+    return min(cores, int(cap)) if int(cap) > 0 else cores
 
 
 #: Work units in flight by default (every core).
@@ -114,7 +124,7 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     R = int(settings.bake_resolution)
     N = int(settings.bake_samples)
     ts, tris = texels if texels is not None else object_texels(scene, index, R)
-    threads = bake_threads(getattr(settings, "bake_threads", 0)) if threads is None else int(threads)
+    threads = bake_threads() if threads is None else int(threads)
     n_tex = len(ts)
     B = batch_count(N)
     states = np.full(n_tex, -1, dtype=np.int64)
@@ -268,7 +278,7 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     lmdp      anything with ``scene``, ``states``, ``dynamics``, ``solution`` (e.g.
               ``pipeline.LMDPResult``): required by GUIDED and FINAL_GATHER
     precompute_seconds  {'sample', 'build', 'solve'} wall times to report with the bake
-    threads   work units in flight (None: :func:`bake_threads` of ``settings.bake_threads``)
+    threads   work units in flight (None: :func:`bake_threads`, every core unless capped)
     plan      the :class:`~lmdp_addon.bake.checks.BakePlan` of ``checks.check_bake`` for these
               arguments: no check runs again and its texels are used (a plan whose texel checks
               are still to run gets them here first: ``checks.check_texels``, a "texels" step
