@@ -31,7 +31,7 @@ class Settings:
     tolerance: float = 1e-8           #: relative change / residual at which the solver stops
     max_iterations: int = 10000       #: iteration cap of POWER and ITERATIVE
     # Bake (guided path tracing)
-    bake_mode: str = "GUIDED"         #: 'UNGUIDED', 'GUIDED', 'FINAL_GATHER' or 'RESIDUAL'
+    bake_mode: str = "UNGUIDED"       #: 'UNGUIDED', 'GUIDED', 'FINAL_GATHER' or 'RESIDUAL' (docs/design.md)
     bake_resolution: int = 128        #: lightmap width = height in pixels
     bake_samples: int = 64            #: paths per texel
     bake_margin: int = 16             #: texels of dilation around UV islands (like Cycles)

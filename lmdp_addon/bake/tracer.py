@@ -29,11 +29,13 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
 
-Direction sampling (``guide.py``): UNGUIDED cosine-weighted, ``p(ω) = cos θ / π`` (``w = 1``);
+Direction sampling (``guide.py``): UNGUIDED (and RESIDUAL) cosine-weighted, ``p(ω) = cos θ / π`` (``w = 1``);
 GUIDED the one-sample mixture ``α g_s + (1 - α) cos θ / π`` of the optimal policy of the
 nearest compatible state s and cosine sampling; FINAL_GATHER draws the first direction as GUIDED
 and ends the path at its hit y_1 with the solution's ẑ_ind there (``gather.py``), the direct
 light at y_1 by light sampling; the hits the gather cannot serve continue as GUIDED paths.
+RESIDUAL traces UNGUIDED paths that also record the control variate g at their first hit
+(``residual.py``), and its control samples stop there (``first_hit_only``).
 
 Arrays are float32 in the hot loop (positions keep ~1e-7 relative precision). Hit points are
 rebuilt from the hit's barycentrics on the hit triangle, so they lie on its plane to the
