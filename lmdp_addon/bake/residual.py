@@ -35,8 +35,8 @@ from .texels import sample_footprint
 from .tracer import TraceStats
 
 #: Control samples per full path (M / N). A control sample costs one closest hit and one shadow
-#: ray, a full path several of each (docs/design.md, "RESIDUAL").
-CONTROL_RATIO = 4
+#: ray, a full path several of each; 2 was the most efficient measured (docs/design.md, "RESIDUAL").
+CONTROL_RATIO = 2
 
 
 class ControlVariate:
