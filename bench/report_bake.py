@@ -164,8 +164,9 @@ def default_mode_verdicts(results):
             continue
         name = names[0] if names else "UNGUIDED"
         effs = {n: e for (m, n, _, _, _, e, _) in efficiency_rows(case) if m == name}
-        if mode == "UNGUIDED":
-            effs = {n: 1.0 for n in EFFICIENCY_SAMPLES}
+        if mode == "UNGUIDED":     # the reference itself, at the counts it was run at
+            effs = {p["samples"]: 1.0 for p in case["curves"].get("UNGUIDED", [])
+                    if p["samples"] in EFFICIENCY_SAMPLES}
         at = ", ".join(f"{n} spp {e:.2f} x" for n, e in sorted(effs.items()))
         ok = all(effs.get(n, 0) >= bar for n in (64, 256)) and all(e >= 1.0 for n, e in effs.items() if n >= 16)
         text = f"{'**met**' if ok else '**missed**'}: efficiency against UNGUIDED {at} (bar {bar:g} x)"

@@ -61,15 +61,16 @@ class Profile:
     #: 'FINAL_GATHER', 'RESIDUAL'), ``name``, ``ladder``, optional ``settings`` (overrides of the
     #: engine's ``Settings`` defaults) and ``cases`` (the cases it runs on; default all).
     lmdp_methods: list = field(default_factory=list)
-    #: Sample counts of Cycles with path guiding on (Open PGL), a column beside Cycles; () = not run.
-    cycles_guided_ladder: tuple = ()
+    #: Sample counts of Cycles with path guiding on (Open PGL), a column beside Cycles, per case
+    #: (case key -> ladder; a case not named does not run it).
+    cycles_guided_ladder: dict = field(default_factory=dict)
 
 
 def method_plan(profile, case_key):
     """The methods of one case, in run order: Cycles first, then the profile's LMDP entries."""
     methods = [CyclesBake(profile.cycles_ladder)]
-    if profile.cycles_guided_ladder:
-        methods.append(CyclesBake(profile.cycles_guided_ladder, name=CYCLES_GUIDED, guiding=True))
+    if profile.cycles_guided_ladder.get(case_key):
+        methods.append(CyclesBake(profile.cycles_guided_ladder[case_key], name=CYCLES_GUIDED, guiding=True))
     ok, _ = lmdp_bake_available()
     if not ok:
         return methods
