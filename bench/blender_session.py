@@ -59,15 +59,23 @@ class BlenderSession:
         self.demo.build_demo_scene(kind, bpy.context)
         self.kind = kind
 
-    def bake(self, object_name, resolution, samples, seed, max_bounces):
+    def bake(self, object_name, resolution, samples, seed, max_bounces, guiding=False):
         """Cycles' DIFFUSE / INDIRECT bake of ``object_name``: (R, R, 4) float32, row 0 at the
         bottom, uncovered pixels = :data:`SENTINEL` (margin 0). Adaptive sampling and indirect
-        clamping are off (unbiased, like the engine); total and diffuse bounces = ``max_bounces``."""
+        clamping are off (unbiased, like the engine); total and diffuse bounces = ``max_bounces``.
+        ``guiding``: Cycles' path guiding (Open PGL, ``scene.cycles.use_guiding``, surface
+        guiding; the bake honours it on the CPU), restored afterwards."""
         obj = self.bpy.data.objects[object_name]
-        return self.demo.bake_cycles(self.bpy.context, obj, 'DIFFUSE', ('INDIRECT',), int(resolution),
-                                     samples=int(samples), margin=0, margin_type='EXTEND',
-                                     fill=SENTINEL, max_bounces=int(max_bounces), seed=int(seed),
-                                     clamp_indirect=0.0)
+        cycles = self.bpy.context.scene.cycles
+        saved = cycles.use_guiding
+        cycles.use_guiding = bool(guiding)
+        try:
+            return self.demo.bake_cycles(self.bpy.context, obj, 'DIFFUSE', ('INDIRECT',), int(resolution),
+                                         samples=int(samples), margin=0, margin_type='EXTEND',
+                                         fill=SENTINEL, max_bounces=int(max_bounces), seed=int(seed),
+                                         clamp_indirect=0.0)
+        finally:
+            cycles.use_guiding = saved
 
     def close(self):
         try:

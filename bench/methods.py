@@ -50,31 +50,34 @@ class BakeRun:
 
 
 class CyclesBake:
-    """Cycles' own bake: DIFFUSE with pass filter INDIRECT, adaptive sampling off."""
+    """Cycles' own bake: DIFFUSE with pass filter INDIRECT, adaptive sampling off; ``guiding``:
+    with Cycles' path guiding (Open PGL, ``scene.cycles.use_guiding``) on."""
 
     family = "Cycles"
 
-    def __init__(self, ladder, name="Cycles"):
+    def __init__(self, ladder, name="Cycles", guiding=False):
         self.name = name
         self.ladder = tuple(int(s) for s in ladder)
+        self.guiding = bool(guiding)
 
     def describe(self):
         return {"bake": "bpy.ops.object.bake(type='DIFFUSE', pass_filter={'INDIRECT'})",
-                "adaptive_sampling": False, "denoising": False, "margin": 0}
+                "adaptive_sampling": False, "denoising": False, "margin": 0, "use_guiding": self.guiding}
 
     def prepare(self, case, seed):
         return Prepared()
 
     def bake(self, case, prepared, samples, seed):
         with Stopwatch() as sw:
-            image = case.blender.bake(case.receiver, case.resolution, samples, seed, case.bounces)
+            image = case.blender.bake(case.receiver, case.resolution, samples, seed, case.bounces,
+                                      guiding=self.guiding)
         return BakeRun(values=image[case.rows, case.cols, :3].astype(np.float64), seconds=sw.seconds,
                        info={"covered": int(np.count_nonzero(image[..., 3] >= 0))})
 
 
 class LMDPBake:
     """This project's bake (``lmdp_addon.bake.driver.bake``) in one ``bake_mode``, with the LMDP
-    precompute of ``settings`` for GUIDED and FINAL_GATHER."""
+    precompute of ``settings`` for GUIDED, FINAL_GATHER and RESIDUAL."""
 
     def __init__(self, mode, ladder, name=None, **settings):
         self.family = mode

@@ -9,7 +9,7 @@ this module assembles the page, the README block and writes them.
 from pathlib import Path
 
 from .common import DOCS, IMAGES, ROOT
-from .report_bake import bake_verdicts, case_section, error_method, what_is_timed
+from .report_bake import bake_verdicts, case_section, default_mode_verdicts, error_method, what_is_timed
 from .report_engine import build_section, convergence_section, policy_section, solve_section
 from .report_format import fmt_bytes, fmt_rate, fmt_s, machine_caption, table
 from .report_plots import plot_build, plot_convergence, plot_policy, plot_solve, plot_speed_error
@@ -74,6 +74,8 @@ def markdown(results, image_prefix):
     if "bake" in results:
         for text, verdict in bake_verdicts(results):
             verdicts.append((f"Issue 5: {text}", verdict))
+        for text, verdict in default_mode_verdicts(results):
+            verdicts.append((f"Issue 20: {text}", verdict))
     lines += [table(["target", "result"], verdicts), ""]
     if "bake" in results:
         lines += ["## Speed against error", "", what_is_timed(), "", error_method(results), "",
@@ -110,7 +112,7 @@ def readme_block(results):
         cells = []
         for m in case["methods"]:
             r = row["methods"].get(m["name"])
-            if r is not None and m["family"] in ("UNGUIDED", "GUIDED", "FINAL_GATHER"):
+            if r is not None and m["family"] in ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL", "Cycles"):
                 note = {"undecided": " (undecided: its ladder ends first)", "loses": " (loses)",
                         "wins": " (wins)"}.get(r["status"], "")
                 cells.append(f"{m['name']} {r['text']}{note}")

@@ -102,40 +102,90 @@ def case_section(key, case, image_rel):
     return "\n".join(lines)
 
 
-def _efficiency_table(case):
-    """Variance and cost per sample of each method relative to UNGUIDED, at the largest sample
-    count both were run at (the precompute is left out here; it is in the wall times above)."""
+#: Sample counts of the per-sample efficiency table (issue 20: 64 and 256 samples).
+EFFICIENCY_SAMPLES = (16, 64, 256)
+
+
+def efficiency_rows(case):
+    """``[(method, samples, error² ratio, bake-time ratio, efficiency, efficiency with the
+    precompute, bias)]`` of every method against UNGUIDED at each sample count of
+    :data:`EFFICIENCY_SAMPLES` both were run at: variance per sample (the squared relative
+    error, Cycles' reference noise removed) and cost per sample (the bake's wall time) as ratios,
+    efficiency = 1 / (error² ratio x time ratio), and the same with the precompute in the time."""
     base = {p["samples"]: p for p in case["curves"].get("UNGUIDED", [])}
-    if not base:
-        return ""
-    rows = []
+    out = []
     for m in case["methods"]:
         if m["name"] == "UNGUIDED":
             continue
         pts = {p["samples"]: p for p in case["curves"].get(m["name"], [])}
-        common = sorted(set(pts) & set(base))
-        if not common:
-            continue
-        n = common[-1]
-        p, b = pts[n], base[n]
-        if not (p["rel_rmse"] > 0 and b["rel_rmse"] > 0 and b["bake_seconds"] > 0):
-            continue
-        var = (p["rel_rmse"] / b["rel_rmse"]) ** 2
-        cost = p["bake_seconds"] / b["bake_seconds"]
-        rows.append([m["name"], n, f"{var:.2f}", f"{cost:.2f}", f"{1.0 / (var * cost):.2f}",
-                     fmt_signed_pct(p["bias"], 2)])
+        for n in sorted(set(pts) & set(base) & set(EFFICIENCY_SAMPLES)):
+            p, b = pts[n], base[n]
+            if not (p["rel_rmse"] > 0 and b["rel_rmse"] > 0 and b["bake_seconds"] > 0 and b["seconds"] > 0):
+                continue
+            var = (p["rel_rmse"] / b["rel_rmse"]) ** 2
+            cost = p["bake_seconds"] / b["bake_seconds"]
+            wall = p["seconds"] / b["seconds"]
+            out.append((m["name"], n, var, cost, 1.0 / (var * cost), 1.0 / (var * wall), p["bias"]))
+    return out
+
+
+def _efficiency_table(case):
+    """The table of :func:`efficiency_rows`."""
+    rows = [[name, n, f"{var:.2f}", f"{cost:.2f}", f"{eff:.2f}", f"{eff_wall:.2f}", fmt_signed_pct(bias, 2)]
+            for name, n, var, cost, eff, eff_wall, bias in efficiency_rows(case)]
     if not rows:
         return ""
-    return ("Per sample, relative to UNGUIDED at the same sample count (error² ratio: below 1 = less noise "
-            "per sample; bake-time ratio without the precompute; efficiency = 1 / (error² ratio x time "
-            "ratio), above 1 = better than UNGUIDED):\n\n"
-            + table(["method", "samples", "error² ratio", "bake-time ratio", "efficiency", "bias"], rows))
+    return ("Per sample, relative to UNGUIDED at the same sample count (error² ratio: variance per sample, "
+            "below 1 = less noise; bake-time ratio: cost per sample without the precompute; efficiency = "
+            "1 / (error² ratio x time ratio), above 1 = better than UNGUIDED; the last efficiency counts "
+            "the precompute in the time). Techniques tried and dropped are in docs/design.md "
+            "(\"RESIDUAL\"); bench/techniques.py measures them per sample:\n\n"
+            + table(["method", "samples", "error² ratio", "bake-time ratio", "efficiency",
+                     "efficiency with precompute", "bias"], rows))
+
+
+#: Issue 20's bars for the default bake mode: (case, least efficiency against UNGUIDED with the
+#: precompute, largest time to reach Cycles' error as a fraction of Cycles' time or None).
+DEFAULT_MODE_BARS = (("narrow_opening", 2.0, 0.33), ("cornell", 1.3, 0.5), ("heavy", 1.3, None))
+
+
+def default_mode_verdicts(results):
+    """Issue 20's bars, checked for the default bake mode (``Settings.bake_mode``) on the
+    per-sample efficiency rows and the ratio tables: efficiency with the precompute at least the
+    bar at 64 and 256 samples and at least 1 from 16 up, time to Cycles' error at most the bar."""
+    from lmdp_addon.settings import Settings
+    mode = Settings().bake_mode
+    out = []
+    for key, bar, time_bar in DEFAULT_MODE_BARS:
+        case = results.get("bake", {}).get(key)
+        names = [m["name"] for m in (case or {}).get("methods", []) if m["family"] == mode]
+        if not case or (not names and mode != "UNGUIDED"):
+            out.append((f"default mode {mode} on {key}", "not measured in this run"))
+            continue
+        name = names[0] if names else "UNGUIDED"
+        effs = {n: e for (m, n, _, _, _, e, _) in efficiency_rows(case) if m == name}
+        if mode == "UNGUIDED":     # the reference itself, at the counts it was run at
+            effs = {p["samples"]: 1.0 for p in case["curves"].get("UNGUIDED", [])
+                    if p["samples"] in EFFICIENCY_SAMPLES}
+        at = ", ".join(f"{n} spp {e:.2f} x" for n, e in sorted(effs.items()))
+        ok = all(effs.get(n, 0) >= bar for n in (64, 256)) and all(e >= 1.0 for n, e in effs.items() if n >= 16)
+        text = f"{'**met**' if ok else '**missed**'}: efficiency against UNGUIDED {at} (bar {bar:g} x)"
+        if time_bar is not None:
+            cells = [f"N = {row['cycles_samples']}: {row['methods'][name]['text']}" for row in case.get("ratios", [])
+                     if name in row["methods"] and row["cycles_samples"] in (64, 256)]
+            fast = all(row["methods"][name]["ratio"] <= time_bar and row["methods"][name]["kind"] != "never"
+                       for row in case.get("ratios", [])
+                       if name in row["methods"] and row["cycles_samples"] in (64, 256))
+            text += (f"; time to Cycles' error {'**met**' if fast and cells else '**missed**'}: "
+                     f"{'; '.join(cells) or 'not measured'} (bar {time_bar:g} x)")
+        out.append((f"default mode {name} on {key}", text))
+    return out
 
 
 def loss_summary(case, names):
     """One sentence per family: where it wins, loses, or cannot tell."""
     out = []
-    for family in ("UNGUIDED", "GUIDED", "FINAL_GATHER"):
+    for family in ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL", "Cycles"):
         fam = [m["name"] for m in case["methods"] if m["family"] == family and m["name"] in names]
         if not fam:
             continue

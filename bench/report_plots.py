@@ -8,6 +8,7 @@ FAMILY_STYLE = {
     "UNGUIDED": dict(color="tab:blue", marker="o", linestyle="-"),
     "GUIDED": dict(marker="^", linestyle="-"),
     "FINAL_GATHER": dict(marker="D", linestyle="--"),
+    "RESIDUAL": dict(color="tab:olive", marker="v", linestyle="-."),
 }
 GUIDED_COLOURS = ["tab:orange", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive"]
 GATHER_COLOURS = ["tab:green", "tab:cyan", "tab:gray"]
@@ -25,6 +26,8 @@ def _method_styles(methods):
     styles, g, f = {}, 0, 0
     for m in methods:
         style = dict(FAMILY_STYLE.get(m["family"], {}))
+        if m["family"] == "Cycles" and m["name"] != "Cycles":      # Cycles with path guiding
+            style.update(color="dimgray", linestyle=":")
         if m["family"] == "GUIDED":
             style["color"] = GUIDED_COLOURS[g % len(GUIDED_COLOURS)]
             g += 1

@@ -53,10 +53,13 @@ def profiles():
         repeats=3,
         bounces=8,
         cycles_ladder=(1, 4, 16, 64, 256),
+        # Cycles with Open PGL guiding: a column beside Cycles (the heavy scene without 256 samples,
+        # which alone would add about a minute per repeat).
+        cycles_guided_ladder={"cornell": (16, 64, 256), "narrow_opening": (16, 64, 256), "heavy": (16, 64)},
         lmdp_methods=[
             dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder),
+            dict(mode="RESIDUAL", name="RESIDUAL 2048 pts (defaults)", ladder=(16, 64, 256)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=ladder),
-            dict(mode="GUIDED", name="GUIDED 32768 pts", ladder=ladder, settings={"point_count": 32768}),
             dict(mode="GUIDED", name="GUIDED THESIS λ x0.01", ladder=(4, 16, 64), cases=light,
                  settings={"cost_mode": "THESIS", "lambda_scale": 0.01}),
             dict(mode="GUIDED", name="GUIDED THESIS λ x1", ladder=(4, 16, 64), cases=light,
@@ -76,8 +79,10 @@ def profiles():
         repeats=1,
         bounces=8,
         cycles_ladder=(1, 4, 16, 64),
+        cycles_guided_ladder={"cornell": (16, 64), "narrow_opening": (16, 64)},
         lmdp_methods=[
             dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64)),
+            dict(mode="RESIDUAL", name="RESIDUAL 2048 pts", ladder=(16, 64)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=(4, 16, 64)),
             dict(mode="GUIDED", name="GUIDED THESIS λ x1", ladder=(4, 16), settings={"cost_mode": "THESIS"}),
             dict(mode="FINAL_GATHER", name="FINAL_GATHER 2048 pts", ladder=(1, 4, 16)),

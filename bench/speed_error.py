@@ -40,6 +40,9 @@ CASES = {
                      kind="CORNELL_BOX", receiver="Floor", world=True),
 }
 
+#: Name of the Cycles-with-path-guiding curve.
+CYCLES_GUIDED = "Cycles + path guiding"
+
 #: Seeds of the two reference halves, and the first seed of the compared runs.
 REFERENCE_SEEDS = (1, 2)
 FIRST_SEED = 100
@@ -57,14 +60,19 @@ class Profile:
     bounces: int
     cycles_ladder: tuple
     #: LMDP methods after Cycles, in run order: dicts with ``mode`` ('UNGUIDED', 'GUIDED',
-    #: 'FINAL_GATHER'), ``name``, ``ladder``, optional ``settings`` (overrides of the engine's
-    #: ``Settings`` defaults) and ``cases`` (the cases it runs on; default all).
+    #: 'FINAL_GATHER', 'RESIDUAL'), ``name``, ``ladder``, optional ``settings`` (overrides of the
+    #: engine's ``Settings`` defaults) and ``cases`` (the cases it runs on; default all).
     lmdp_methods: list = field(default_factory=list)
+    #: Sample counts of Cycles with path guiding on (Open PGL), a column beside Cycles, per case
+    #: (case key -> ladder; a case not named does not run it).
+    cycles_guided_ladder: dict = field(default_factory=dict)
 
 
 def method_plan(profile, case_key):
     """The methods of one case, in run order: Cycles first, then the profile's LMDP entries."""
     methods = [CyclesBake(profile.cycles_ladder)]
+    if profile.cycles_guided_ladder.get(case_key):
+        methods.append(CyclesBake(profile.cycles_guided_ladder[case_key], name=CYCLES_GUIDED, guiding=True))
     ok, _ = lmdp_bake_available()
     if not ok:
         return methods

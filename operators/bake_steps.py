@@ -25,23 +25,25 @@ apply; the result records them (``bake_stats.json`` "light_paths", the report's 
 Objects are identified by their key, ``name_full`` (the name, or "Floor [library.blend]" for a
 linked object), so a linked object never writes into the lightmap of a local namesake.
 """
+import copy
 from collections import Counter
 from dataclasses import dataclass, field
 
 import bpy
+import numpy as np
 
 from ..lmdp_addon.bake import driver
-from ..lmdp_addon.bake.checks import check_bake, check_texels
+from ..lmdp_addon.bake.checks import check_bake, check_texels, scene_fingerprint
 from ..lmdp_addon.errors import SceneError
+from ..lmdp_addon.model import pipeline
 from .adapters.extract import extract_scene
 from .adapters.lightmaps import prepare_output_folder, write_lightmaps
 from .adapters.materials import check_hook_up, hook_up as hook_up_materials
 from .common import selected_meshes
 from .session import session_for
 
-#: poll message of a GUIDED / FINAL_GATHER bake without a solution.
-SOLVE_FIRST = ("Solve first (LMDP panel > Solve, or Run All): the {mode} bake mode is guided by "
-               "the solved optimal policy; or choose bake mode Unguided")
+#: The bake modes that read the solved LMDP (the others need none).
+SOLUTION_MODES = ("GUIDED", "FINAL_GATHER", "RESIDUAL")
 
 
 @dataclass
@@ -50,7 +52,8 @@ class BakeInputs:
 
     scene: object                      #: SceneArrays of the current scene
     plan: object                       #: checks.BakePlan: the objects, their texels, the warnings
-    lmdp: object = None                #: LMDPResult that guides GUIDED / FINAL_GATHER
+    lmdp: object = None                #: LMDPResult that guides GUIDED / FINAL_GATHER / RESIDUAL
+    solve: bool = False                #: no usable solution: compute_bake samples, builds, solves first
     warnings: list = field(default_factory=list)
     keys: dict = field(default_factory=dict)  #: object name -> key (``name_full``)
     light_paths: object = None         #: the LightPaths the bake follows (None: settings.max_bounces)
@@ -63,6 +66,8 @@ class BakedLightmaps:
     result: object                     #: the engine's BakeResult
     keys: dict                         #: object name -> key (``name_full``)
     light_paths: object = None         #: the LightPaths of the bake
+    solved: object = None              #: the LMDPResult compute_bake solved first (None: reused)
+    names: tuple = ()                  #: the meshes that carry its states (every mesh with states)
 
 
 def check_light_paths(light_paths):
@@ -98,20 +103,45 @@ def object_keys(meshes):
     return {obj.name: obj.name_full for obj in meshes}
 
 
+def usable_solution(result, scene, settings):
+    """The session's ``LMDPResult`` if it can serve a bake of ``scene`` in ``settings.bake_mode``:
+    solved, on this very scene (``checks.scene_fingerprint``: same geometry, materials and
+    lights), and in the PHYSICAL cost mode where the mode reads z itself (FINAL_GATHER,
+    RESIDUAL); else None."""
+    if result is None or result.solution is None or result.scene is None:
+        return None
+    if settings.bake_mode in ("FINAL_GATHER", "RESIDUAL") and result.solution.cost_mode != "PHYSICAL":
+        return None
+    if scene_fingerprint(scene) != scene_fingerprint(result.scene):
+        return None
+    return result
+
+
 def bake_inputs(context, settings, hook_up="NONE", light_paths=None):
     """Main thread: capture the scene and check the bake (raises ``LMDPError`` before any work).
 
-    GUIDED and FINAL_GATHER are guided by the session's ``LMDPResult`` as it is. ``settings``
-    carry the path length of ``light_paths`` (``properties.bake_settings_from_scene``)."""
+    GUIDED, FINAL_GATHER and RESIDUAL read the session's ``LMDPResult`` when it is a usable
+    solution of this scene (:func:`usable_solution`); otherwise the bake samples, builds and
+    solves the selected meshes first (``BakeInputs.solve``: :func:`compute_bake` runs the
+    pipeline with ``settings``, :func:`apply_bake` keeps its result in the session), so a first
+    bake on a fresh scene just works. ``settings`` carry the path length of ``light_paths``
+    (``properties.bake_settings_from_scene``)."""
     path_warnings = check_light_paths(light_paths)
     meshes = selected_meshes(context)
     scene = extract_scene(context, meshes)
     check_distinct_names(context, scene, meshes)
-    lmdp = session_for(context.scene).result if settings.bake_mode != "UNGUIDED" else None
-    plan = check_bake(scene, [obj.name for obj in meshes], settings, lmdp, rasterise=False)
+    names = [obj.name for obj in meshes]
+    lmdp, solve = None, False
+    if settings.bake_mode in SOLUTION_MODES:
+        lmdp = usable_solution(session_for(context.scene).result, scene, settings)
+        solve = lmdp is None
+    if solve:
+        solve_scene(scene).check_for_lmdp()
+        pipeline.check_build(solve_scene(scene), settings)
+    plan = check_bake(scene, names, settings, lmdp, will_solve=solve, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
-    return BakeInputs(scene=scene, plan=plan, lmdp=lmdp,
+    return BakeInputs(scene=scene, plan=plan, lmdp=lmdp, solve=solve,
                       warnings=path_warnings + list(scene.warnings) + list(plan.warnings),
                       keys=object_keys(meshes), light_paths=light_paths)
 
@@ -138,16 +168,33 @@ def check_bake_texels(inputs, progress):
     check_texels(inputs.scene, inputs.plan, progress)
 
 
+def solve_scene(scene):
+    """The captured ``scene`` with states on every mesh (a shallow copy: the same arrays), for
+    the solve a bake runs itself: the light the bake's paths meet on unselected walls is then
+    guided and gathered too. The scene fingerprint ignores which meshes carry states, so the
+    session's result serves the next bake of any selection in this scene."""
+    solved = copy.copy(scene)
+    solved.object_carries_states = np.ones(len(scene.object_names), dtype=bool)
+    return solved
+
+
 def compute_bake(inputs, settings, progress):
-    """No bpy: the engine bake of the checked plan (``lmdp_addon.bake.driver.bake``)."""
-    lmdp = inputs.lmdp
+    """No bpy: the engine bake of the checked plan (``lmdp_addon.bake.driver.bake``); with
+    ``inputs.solve`` the texel checks, then ``pipeline.run_all`` (sample, build, solve) first."""
+    lmdp, solved = inputs.lmdp, None
+    if inputs.solve:
+        check_bake_texels(inputs, progress)       # a UV problem stops the bake before the solve
+        lmdp = solved = pipeline.run_all(solve_scene(inputs.scene), settings, progress, check=False)
     result = driver.bake(inputs.scene, inputs.plan.names, settings, lmdp=lmdp, progress=progress,
                          precompute_seconds=dict(lmdp.seconds) if lmdp is not None else None,
                          plan=inputs.plan)
     result.warnings = list(inputs.warnings) + list(inputs.plan.texel_warnings)
     if inputs.light_paths is not None:
         result.light_paths = inputs.light_paths.as_dict()
-    return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths)
+    carriers = () if solved is None else tuple(np.asarray(solved.scene.object_names)[
+        np.unique(solved.states.point_object)].tolist())
+    return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths, solved=solved,
+                          names=carriers)
 
 
 def _objects_by_key(keys):
@@ -166,6 +213,8 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     """
     result = baked.result
     warnings = list(result.warnings)
+    if baked.solved is not None:
+        warnings += list(baked.solved.dynamics.warnings)
     output_dir = prepare_output_folder(settings.output_dir)
     objects = _objects_by_key(baked.keys)
     present = [obj for obj in objects.values() if obj is not None]
@@ -176,12 +225,18 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
         warnings.append(f"{', '.join(gone)} no longer in the file: lightmap written, not hooked up")
     warnings += hook_up_materials([(objects[n], im) for n, im in images.items()
                                     if objects.get(n) is not None], hook_up)
-    session_for(context.scene).store("bake", result, seconds=result.seconds.get("bake"))
+    session = session_for(context.scene)
+    if baked.solved is not None:             # the bake solved the LMDP first: keep it (Run All does)
+        session.store_result(baked.solved, baked.names)
+    session.store("bake", result, seconds=result.seconds.get("bake"))
     rays = sum(ob.stats.total_rays for ob in result.objects)
     bake_seconds = result.seconds.get("bake", 0.0)
     where = f", saved to {output_dir}" if output_dir else ""
     message = (f"Baked {len(result.objects)} lightmap(s) ({result.mode}, {result.n_texels} texels x "
                f"{settings.bake_samples} samples, {rays / 1e6:.2f} M rays) in {bake_seconds:.2f} s{where}")
+    if baked.solved is not None:
+        message += (f"; sampled, built and solved the LMDP first ({baked.solved.states.n_points} points, "
+                    f"{sum(baked.solved.seconds.values()):.2f} s)")
     if baked.light_paths is not None:
         message += f"; {baked.light_paths.summary()}"
     return message, warnings

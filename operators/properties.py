@@ -38,6 +38,9 @@ BAKE_MODE_ITEMS = (
     ("FINAL_GATHER", "Final Gather",
      "One guided bounce, then the PHYSICAL-mode solution's indirect light at the hit plus the "
      "direct light sampled there: fast, biased by the discretisation"),
+    ("RESIDUAL", "Residual",
+     "Unbiased: the PHYSICAL-mode solution's first-bounce gather as a control variate, its mean "
+     "from cheap one-bounce samples and the paths tracing only the residual"),
 )
 LIGHT_PATHS_ITEMS = (
     ("SCENE", "Scene",

@@ -266,11 +266,12 @@ def check_bake_memory(scene, names, indices, settings):
     """The bake's estimated peak memory (bytes, ``memory.estimate_bake_bytes``) from an upper
     bound on each object's texels (``texels.texel_count_bound``: no rasterisation); raises
     :class:`BudgetError` when it exceeds ``settings.memory_budget_gb``."""
-    from .driver import BAKE_THREADS, PATHS_PER_UNIT   # the driver imports this module
+    from .driver import PATHS_PER_UNIT, bake_threads   # the driver imports this module
     R = int(settings.bake_resolution)
     counts = [texel_count_bound(scene.triangle_uv[(scene.triangle_object == i) & scene.usable_triangles()], R)
               for i in indices]
-    need = estimate_bake_bytes(counts, R, int(settings.bake_samples), scene.n_triangles, BAKE_THREADS,
+    need = estimate_bake_bytes(counts, R, int(settings.bake_samples), scene.n_triangles,
+                               bake_threads(),
                                PATHS_PER_UNIT)
     budget = settings.memory_budget_gb
     if budget is not None and need > float(budget) * 1024 ** 3:
@@ -284,17 +285,20 @@ def check_bake_memory(scene, names, indices, settings):
     return need
 
 
+_MODE_NAMES = {"FINAL_GATHER": "Final Gather", "RESIDUAL": "Residual"}
+
+
 def _check_solution(scene, names, settings, lmdp, will_solve):
     """The stage-order and solution checks of the guided modes; returns their warnings."""
     warnings = []
     mode = settings.bake_mode
     if will_solve:
-        if mode == "FINAL_GATHER" and settings.cost_mode != "PHYSICAL":
-            raise SceneError("Final Gather reads the outgoing radiance z of the PHYSICAL cost mode: "
+        if mode in ("FINAL_GATHER", "RESIDUAL") and settings.cost_mode != "PHYSICAL":
+            raise SceneError(f"{_MODE_NAMES[mode]} reads the outgoing radiance z of the PHYSICAL cost mode: "
                              f"set Cost Mode to Physical (it is {settings.cost_mode}), or bake with "
                              "Guided or Unguided")
         return warnings
-    if mode not in ("GUIDED", "FINAL_GATHER"):
+    if mode not in ("GUIDED", "FINAL_GATHER", "RESIDUAL"):
         return warnings
     if lmdp is None or lmdp.solution is None:
         raise StageOrderError(f"Solve first (LMDP panel > Solve): {mode} bakes are guided by "
@@ -309,13 +313,22 @@ def _check_solution(scene, names, settings, lmdp, will_solve):
             raise SceneError("The scene changed since the states were sampled: Final Gather would "
                              "read the old solution at the new surfaces. Run the pipeline again "
                              "(LMDP > Run All), or bake with Guided or Unguided")
+    elif mode == "RESIDUAL":
+        if lmdp.solution.cost_mode != "PHYSICAL":
+            raise SceneError("Residual reads the outgoing radiance z of the PHYSICAL cost mode, but "
+                             f"the solution was computed in {lmdp.solution.cost_mode} mode: set Cost "
+                             "Mode to Physical and run the pipeline again, or bake with Unguided")
+        if not same:
+            warnings.append("The scene changed since the states were sampled: the bake traces the "
+                            "current scene with the old solution as its control variate (still "
+                            "unbiased, but noisier). Run the pipeline again for the best result")
     elif not same:
         warnings.append("The scene changed since the states were sampled: the bake traces the "
                         "current scene, guided by the old optimal policy (still unbiased, but "
                         "less effective). Run the pipeline again for the best guide")
     carried = set(np.asarray(lmdp.scene.object_names)[lmdp.states.point_object].tolist())
     unguided = [n for n in names if n not in carried]
-    if unguided:
+    if unguided and mode != "RESIDUAL":     # RESIDUAL reads the states at the paths' hits only
         warnings.append(f"No states on {', '.join(unguided)}: their texels start with cosine "
                         "sampling (select them when sampling to guide them too)")
     return warnings

@@ -26,6 +26,7 @@ Walk of one bake: :func:`bake` -> ``checks.check_bake`` (unless given its plan) 
 :func:`make_tracer` (``guide.build_guide``, ``gather.build_gather``) -> :func:`bake_object` per
 object (:func:`work_units`, ``IndirectTracer.trace`` per unit) -> ``results.BakeResult``.
 """
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 
@@ -36,19 +37,42 @@ from ..sampling import stratified_first_uniforms
 from .checks import check_bake, check_texels, object_index, object_texels
 from .gather import build_gather
 from .guide import build_guide
+from .residual import ControlVariate
 from .results import IMAGE_SUFFIX, BakeResult, ObjectBake
 from .texels import dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
 
 # The operators read BakeResult, ObjectBake and IMAGE_SUFFIX here.
-__all__ = ["bake", "bake_object", "make_tracer", "work_units", "batch_count", "PATHS_PER_UNIT",
-           "BAKE_THREADS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
+__all__ = ["bake", "bake_object", "make_tracer", "work_units", "batch_count", "bake_threads", "PATHS_PER_UNIT",
+           "BAKE_THREADS", "MIN_UNITS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
 
 #: Most paths traced by one work unit (memory: ~0.5 KiB per path in flight, so ~64 MiB per
 #: unit). Larger units amortise the per-bounce Python overhead of the wavefront loop.
 PATHS_PER_UNIT = 1 << 17
-#: Work units in flight (the machine's cores; embree and numpy release the GIL).
-BAKE_THREADS = 2
+#: Fewest work units a bake is cut into where the texels allow it (:func:`work_units`). A
+#: constant, not the thread count: the units, hence the result, do not depend on the machine.
+MIN_UNITS = 2
+
+
+#: Environment variable that caps the bake's threads (a positive integer; unset: every core).
+THREADS_VARIABLE = "LMDP_BAKE_THREADS"
+
+
+def bake_threads(cap=None):
+    """Work units in flight: the machine's cores (``os.cpu_count()``, or the CPUs this process
+    may run on where the system says; embree and numpy release the GIL), at most ``cap`` when it
+    is positive; ``cap=None`` reads :data:`THREADS_VARIABLE` (unset, empty or not a positive
+    integer: no cap)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cores = max(1, int(cores or 1))
+    if cap is None:
+        value = os.environ.get(THREADS_VARIABLE, "").strip()
+        cap = int(value) if value.isdigit() else 0
+    return min(cores, int(cap)) if int(cap) > 0 else cores
+
+
+#: Work units in flight by default (every core).
+BAKE_THREADS = bake_threads()
 #: Most independent batches per texel (for the standard error).
 MAX_BATCHES = 8
 #: Texels whose nearest states are looked up at once.
@@ -69,10 +93,10 @@ def work_units(n_texels, batches, per_batch):
     smaller than that (few samples per batch), whole batches share a unit: a small wavefront
     costs about as much Python overhead per bounce as a large one, and threads overlap better on
     long numpy calls. Texel chunks are of equal size (no small remainder unit). There are at
-    least :data:`BAKE_THREADS` units where the texels allow it (whatever the number of threads a
+    least :data:`MIN_UNITS` units where the texels allow it (whatever the number of threads a
     bake runs on, so that its result does not depend on it).
     """
-    threads = BAKE_THREADS
+    threads = MIN_UNITS
     per_batch_paths = max(1, n_texels * per_batch)
     n_chunks = max(1, -(-per_batch_paths // PATHS_PER_UNIT))
     group = 1
@@ -90,7 +114,7 @@ def work_units(n_texels, batches, per_batch):
 # ---- the bake of one object -------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
-                threads=BAKE_THREADS, texels=None):
+                threads=None, texels=None):
     """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``texels``: its
     ``(TexelSet, triangles)`` at ``settings.bake_resolution`` if the caller has them
     (``BakePlan.texels``), else they are rasterised here."""
@@ -100,6 +124,7 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     R = int(settings.bake_resolution)
     N = int(settings.bake_samples)
     ts, tris = texels if texels is not None else object_texels(scene, index, R)
+    threads = bake_threads() if threads is None else int(threads)
     n_tex = len(ts)
     B = batch_count(N)
     states = np.full(n_tex, -1, dtype=np.int64)
@@ -168,9 +193,20 @@ def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_num
             parts.append((fp.position.reshape(k, 3), fp.normal.reshape(k, 3), u.reshape(k, 2),
                           u_mix.reshape(k)))
         position, normal, u, u_mix = (np.concatenate(p) if group > 1 else p[0] for p in zip(*parts))
+        control = np.zeros((k * group, 3), np.float32) if tracer.control is not None else None
         values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
-                                  u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group))
-        return unit_id, values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64), st
+                                  u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group),
+                                  control_out=control)
+        if control is not None:              # RESIDUAL: the paths estimate f - g (residual.py)
+            values -= control
+        sums = values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64)
+        if control is not None:              # ... and the control samples E[g], ratio x as many
+            ratio = tracer.control.ratio
+            for i, b in enumerate(range(b0, b0 + group)):
+                g, cst = tracer.control.samples(tracer, sub, triangles[lo:hi], per_batch, b == 0, rng)
+                sums[i] += g / ratio
+                st.add(cst)
+        return unit_id, sums, st
 
     total = len(units)
     pending = {}
@@ -213,20 +249,25 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
     mode = settings.bake_mode
     guide = gather = None
     info = {}
-    if mode in ("GUIDED", "FINAL_GATHER"):
+    control = None
+    if mode in ("GUIDED", "FINAL_GATHER", "RESIDUAL"):
         guide = build_guide(scene, lmdp)
         info = {"same_scene": bool(guide.same_scene), "points": int(lmdp.states.n_points),
                 "strata": int(lmdp.states.n_strata), "cost_mode": lmdp.solution.cost_mode}
-        if mode == "FINAL_GATHER":
+        if mode in ("FINAL_GATHER", "RESIDUAL"):
             gather = build_gather(guide, lmdp, settings.max_bounces, seed=settings.seed)
-        if caster is None and guide.same_scene:  # same geometry: the build's BVH serves
+        if mode == "RESIDUAL":    # cosine paths: the guide only serves the gather's locator
+            control = ControlVariate(gather)
+            info["control_ratio"] = control.ratio
+            guide = None
+        if caster is None and info["same_scene"]:  # same geometry: the build's BVH serves
             caster = lmdp.dynamics.caster
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
-                            guide_fraction=settings.guide_fraction, caster=caster)
+                            guide_fraction=settings.guide_fraction, caster=caster, control=control)
     return tracer, guide, info
 
 
-def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=BAKE_THREADS,
+def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=None,
          plan=None):
     """Bake the lightmaps of the objects ``names`` of ``scene`` (module docstring).
 
@@ -237,7 +278,7 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     lmdp      anything with ``scene``, ``states``, ``dynamics``, ``solution`` (e.g.
               ``pipeline.LMDPResult``): required by GUIDED and FINAL_GATHER
     precompute_seconds  {'sample', 'build', 'solve'} wall times to report with the bake
-    threads   work units in flight
+    threads   work units in flight (None: :func:`bake_threads`, every core unless capped)
     plan      the :class:`~lmdp_addon.bake.checks.BakePlan` of ``checks.check_bake`` for these
               arguments: no check runs again and its texels are used (a plan whose texel checks
               are still to run gets them here first: ``checks.check_texels``, a "texels" step

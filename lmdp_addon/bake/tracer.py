@@ -32,11 +32,13 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
 
-Direction sampling (``guide.py``): UNGUIDED cosine-weighted, ``p(ω) = cos θ / π`` (``w = 1``);
+Direction sampling (``guide.py``): UNGUIDED (and RESIDUAL) cosine-weighted, ``p(ω) = cos θ / π`` (``w = 1``);
 GUIDED the one-sample mixture ``α g_s + (1 - α) cos θ / π`` of the optimal policy of the
 nearest compatible state s and cosine sampling; FINAL_GATHER draws the first direction as GUIDED
 and ends the path at its hit y_1 with the solution's ẑ_ind there (``gather.py``), the direct
 light at y_1 by light sampling; the hits the gather cannot serve continue as GUIDED paths.
+RESIDUAL traces UNGUIDED paths that also record the control variate g at their first hit
+(``residual.py``), and its control samples stop there (``first_hit_only``).
 
 Arrays are float32 in the hot loop (positions keep ~1e-7 relative precision). Hit points are
 rebuilt from the hit's barycentrics on the hit triangle, so they lie on its plane to the
@@ -54,7 +56,7 @@ from ..raycast import RayCaster
 from ..sampling import dot, rows
 from .guide import CosineDirections, GuidedDirections
 
-MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
+MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
 
 
 @dataclass
@@ -93,20 +95,25 @@ class IndirectTracer:
     guide_fraction  α of the mixture
     rr_start        first vertex index at which Russian roulette may end a path
     caster          the :class:`~lmdp_addon.raycast.RayCaster` to trace with (default: a new one)
+    control         :class:`~lmdp_addon.bake.residual.ControlVariate` (RESIDUAL: cosine paths that
+                    record the control variate g at their first hit, ``trace(control_out=...)``)
     """
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
-                 guide_fraction=0.5, rr_start=3, caster=None):
+                 guide_fraction=0.5, rr_start=3, caster=None, control=None):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
             raise ValueError(f"{mode} needs a StateGuide")
         if mode == "FINAL_GATHER" and gather is None:
             raise ValueError("FINAL_GATHER needs a GatherField")
+        if mode == "RESIDUAL" and control is None:
+            raise ValueError("RESIDUAL needs a ControlVariate")
+        self.control = control if mode == "RESIDUAL" else None
         self.scene = scene
         self.mode = mode
         self.max_bounces = int(max_bounces)
-        self.guide = guide if mode != "UNGUIDED" else None
+        self.guide = guide if mode in ("GUIDED", "FINAL_GATHER") else None
         self.gather = gather if mode == "FINAL_GATHER" else None
         self.guide_fraction = float(np.clip(guide_fraction, 0.0, 1.0)) if self.guide is not None else 0.0
         self.directions = (GuidedDirections(self.guide, self.guide_fraction) if self.guide is not None
@@ -134,7 +141,8 @@ class IndirectTracer:
             and scene.environment.lit else None
 
     # ---- the wavefront loop ----------------------------------------------------------------------
-    def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None):
+    def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None, control_out=None,
+              first_hit_only=False):
         """Estimates I(x) = E_ind/π for paths starting at ``points (n, 3)`` on surfaces with
         normals ``normals (n, 3)`` (the side that is baked).
 
@@ -144,6 +152,8 @@ class IndirectTracer:
         rng      numpy Generator for everything else
         triangles  (n,) scene triangle of each start point, for its ray offset (None: the
                  largest offset of the scene, ``RayCaster.offset()``)
+        control_out  (n, 3) float32 zeros (RESIDUAL): receives each path's control variate g at
+                 its first hit (``residual``); ``first_hit_only``: stop there (control samples)
         Returns ``(values (n, 3) float32, TraceStats)``; the mean of the values is unbiased for
         I (biased by the solution's discretisation in FINAL_GATHER).
         """
@@ -186,6 +196,9 @@ class IndirectTracer:
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
             objs = self.objects[tri]
+            z_ind = None
+            if bounce == 1 and control_out is not None:    # RESIDUAL: ẑ_ind(y_1) of g
+                z_ind = self.control.indirect_at(tri, bu, bv, pos, gnrm, front, objs, dist)
             if bounce == 1 and self.gather is not None:
                 live = self._final_gather(L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs,
                                           rng, stats)
@@ -195,6 +208,7 @@ class IndirectTracer:
             if not np.all(alive):
                 idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
                     np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs)
+                z_ind = z_ind[alive] if z_ind is not None else None
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
@@ -207,10 +221,15 @@ class IndirectTracer:
             stats.shadow_rays += shadow_rays
             L[idx] += beta * direct
             if self.environment is not None:   # ---- the world's half of its MIS estimate ----
-                direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
-                                                             geometric=gnrm if self.smooth else None)
+                world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster,
+                                                                   lift, geometric=gnrm if self.smooth else None)
                 stats.shadow_rays += shadow_rays
-                L[idx] += beta * direct
+                L[idx] += beta * world_direct
+                direct = direct + world_direct
+            if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
+                control_out[idx] = beta * (direct + z_ind)
+                if first_hit_only:
+                    break
             # ---- Russian roulette ----
             if bounce >= self.rr_start:
                 q = np.minimum(_channel_max(beta), 1.0)

@@ -9,7 +9,7 @@ import bpy
 from bpy.props import EnumProperty
 
 from ..adapters.materials import HOOK_UP_ITEMS, remove_hook_up
-from ..bake_steps import SOLVE_FIRST, apply_bake, bake_inputs, compute_bake
+from ..bake_steps import apply_bake, bake_inputs, compute_bake
 from ..common import report_error, report_warnings, selected_meshes
 from ..jobs import EngineJob, ready
 from ..properties import bake_settings_from_scene
@@ -35,9 +35,8 @@ class LMDP_OT_bake(EngineJob, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        mode = context.scene.lmdp.bake_mode if context.scene is not None else 'UNGUIDED'
-        return ready(cls, context, selection=True, stage=None if mode == 'UNGUIDED' else "solution",
-                     message=SOLVE_FIRST.format(mode=mode.replace('_', ' ').title()))
+        # The modes that read a solution solve the scene first when the session has none for it.
+        return ready(cls, context, selection=True)
 
     def read_settings(self, context):
         # The path length follows the scene's Cycles Light Paths unless scene.lmdp.light_paths is CUSTOM.

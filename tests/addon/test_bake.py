@@ -151,13 +151,35 @@ def data_snapshot():
     }
 
 
-def test_guided_modes_without_a_solution_are_refused(cornell):
+@pytest.mark.parametrize("mode", ['GUIDED', 'FINAL_GATHER', 'RESIDUAL'])
+def test_first_bake_in_a_solution_mode_samples_builds_and_solves(cornell, lmdp_ext, mode):
+    """A first bake on a fresh scene just works (issue 20): without a solution in the session
+    the bake solves the scene itself, with states on every mesh, keeps that solution, reuses it
+    for the next bake and solves again when the scene changed."""
     only("Floor")
+    cornell.lmdp.bake_mode = mode
+    store = session(lmdp_ext, cornell)
+    assert store.result.solution is None
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    first = store.result
+    assert first.solution is not None and first.states.n_points == 400
+    assert {"Floor", "Ceiling", "TallBox", "LeftWall"} <= set(store.object_names)
+    assert store.require("bake").mode == mode and store.require("bake").object("Floor").value.mean() > 0.01
+    only("TallBox")
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    assert store.result is first                              # the same scene: reused
+    bpy.data.objects["ShortBox"].location.x += 0.05
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    assert store.result is not first and store.result.solution is not None
+
+
+def test_a_first_residual_bake_refuses_the_thesis_cost_mode(cornell):
+    only("Floor")
+    cornell.lmdp.bake_mode = 'RESIDUAL'
+    cornell.lmdp.cost_mode = 'THESIS'
     before = data_snapshot()
-    for mode in ('GUIDED', 'FINAL_GATHER'):
-        cornell.lmdp.bake_mode = mode
-        with pytest.raises(RuntimeError, match="Solve first"):
-            bpy.ops.lmdp.bake()
+    with pytest.raises(RuntimeError, match="PHYSICAL"):
+        bpy.ops.lmdp.bake()
     assert data_snapshot() == before
 
 

@@ -102,7 +102,7 @@ def assert_means_agree(ours, cyc, var_o, var_c):
     return diff / cyc.mean(axis=0), sigma / cyc.mean(axis=0)
 
 
-@pytest.mark.parametrize("mode", ["UNGUIDED", "GUIDED"])
+@pytest.mark.parametrize("mode", ["UNGUIDED", "GUIDED", "RESIDUAL"])
 def test_cornell_floor_matches_cycles_at_low_resolution(fresh_scene, lmdp_ext, demo, mode):
     """The default suite's end-to-end check: Blender scene -> lmdp.bake -> same texels and the
     same mean as Cycles within 5 standard errors of both estimates; per texel, the squared
@@ -111,11 +111,11 @@ def test_cornell_floor_matches_cycles_at_low_resolution(fresh_scene, lmdp_ext, d
     the estimated variances is 0 within 5 standard errors (computed from the texels)."""
     build("CORNELL_BOX", lmdp_ext)
     refs = reference(lmdp_ext, demo, "Floor", 16, 1024)
+    fresh_scene.lmdp.point_count = 1024
     if mode == "GUIDED":
-        fresh_scene.lmdp.point_count = 1024
         select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
         assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
-    ob = lmdp_bake(lmdp_ext, "Floor", mode, 16, 512)
+    ob = lmdp_bake(lmdp_ext, "Floor", mode, 16, 512)      # RESIDUAL solves the scene itself first
     covered = np.zeros((16, 16), bool)
     covered[ob.texels.row, ob.texels.col] = True
     assert covered.all()  # the floor's UVs cover the image, in Cycles' mapping too
@@ -159,6 +159,22 @@ def test_converges_to_cycles_at_high_samples(fresh_scene, lmdp_ext, demo, name, 
         ratio = m1 / m2  # squared error: 4 for a 4x sample increase
         sigma = ratio * np.sqrt((s1 / m1) ** 2 + (s2 / m2) ** 2)
         assert abs(ratio - n2 / n1) <= K * sigma, (n1, n2, ratio, sigma, errors)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, name", [("CORNELL_BOX", "TallBox"), ("NARROW_OPENING", "RoomAFloor"),
+                                        ("HEAVY", "Floor")])
+def test_residual_is_unbiased_against_cycles(fresh_scene, lmdp_ext, demo, kind, name):
+    """RESIDUAL (the solution as a control variate, issue 20) on three scenes: the mean of the
+    texels within 5 standard errors of both estimates and within 2 % of Cycles' 2 x 4096-sample
+    bake. The bake solves the scene itself (states on every mesh, the default 2048 points)."""
+    build(kind, lmdp_ext)
+    refs = reference(lmdp_ext, demo, name, 16, 4096)
+    ob = lmdp_bake(lmdp_ext, name, "RESIDUAL", 16, 4096)
+    ours, cyc, var_o, var_c = compare(ob, refs)
+    rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
+    print(f"RESIDUAL vs Cycles, {kind} {name}: {100 * rel} % ± {100 * rel_sigma} % (1 s.e.)")
+    assert np.all(np.abs(rel) < 0.02), rel
 
 
 @pytest.mark.slow

@@ -42,6 +42,18 @@ def test_bake_is_deterministic_for_a_seed_and_independent_of_threads(cornell, mo
     assert not np.array_equal(a.image, c.image)
 
 
+def test_bake_threads_come_from_the_machine_and_a_cap(monkeypatch):
+    import os
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    monkeypatch.delenv(baking.THREADS_VARIABLE, raising=False)
+    assert baking.bake_threads() == cores and baking.bake_threads(0) == cores
+    assert baking.bake_threads(1) == 1 and baking.bake_threads(cores + 5) == cores
+    monkeypatch.setenv(baking.THREADS_VARIABLE, "1")
+    assert baking.bake_threads() == 1
+    monkeypatch.setenv(baking.THREADS_VARIABLE, "many")
+    assert baking.bake_threads() == cores
+
+
 def test_standard_error_predicts_the_seed_to_seed_spread(cornell):
     """Two independent bakes differ by sqrt(se1² + se2²) per texel: the batch-based standard
     error is the real error. The mean of d²/(se1² + se2²) over n texels is 1 ± a few / sqrt(n)
