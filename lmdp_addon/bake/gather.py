@@ -149,7 +149,8 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
 
     estimated with ``rays_per_point`` cosine-distributed rays per point (a jittered square
     grid through the concentric map) and one light sample at each hit (``D_e`` by
-    :meth:`~lmdp_addon.lights.EmitterSampler.direct_light`, as the tracer samples it). Rays that
+    :meth:`~lmdp_addon.lights.EmitterSampler.direct_light` and the lamps'
+    :meth:`~lmdp_addon.lamps.Lamps.direct_light`, as the tracer samples it). Rays that
     escape or meet an emitter or the back of a face give 0 (the direct light of x itself and the
     void of the passive dynamics). Hidden (buried) points get 0, and so do the points not in
     ``points`` (indices; default all). The build's ray caster and its locator's ``targets``
@@ -202,8 +203,13 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
             ns = scene.shading_normals(t, bu[hit], bv[hit])        # the front was hit (keep)
             value = albedo[t] * lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
                                                     geometric=ng)[0]
+            if not scene.lamps.empty:
+                value += albedo[t] * scene.lamps.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
+                                                              geometric=ng)[0]
         else:
             value = albedo[t] * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+            if not scene.lamps.empty:
+                value += albedo[t] * scene.lamps.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R
@@ -232,7 +238,8 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
     E = len(lmdp.dynamics.emitter_radiance)
     P_NN = problem.P_NN
     q = np.asarray(problem.q, dtype=np.float64)
-    w = np.asarray(problem.P_NT[:, E:] @ problem.z_terminal[E:], dtype=np.float64)   # world (void: 0)
+    # world and void (z = 0); the lamps' columns after them are direct light, sampled at the hits
+    w = np.asarray(problem.P_NT[:, E:E + 2] @ problem.z_terminal[E:E + 2], dtype=np.float64)
     z_hat = w.copy()
     steps = 100_000 if max_bounces is None else int(max_bounces) - 1
     if steps > 0:

@@ -68,7 +68,10 @@ class PassiveDynamics:
     warnings             messages for the user (objects mostly buried)
     caster               the :class:`~lmdp_addon.raycast.RayCaster` (BVH) the rays were traced
                          with; the bake of the same scene traces with it too
-    Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E`` world, ``m+E+1`` void.
+    lamp_radiance        (L, 3) z_T of each lamp terminal (``Lamps.emission``)
+    lamp_names           L names (the light objects)
+    Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E`` world, ``m+E+1`` void,
+    ``m+E+2..`` lamps (point, spot, sun: reached only through light samples, ``lamps.py``).
     """
 
     stratum_transitions: sp.csr_matrix
@@ -84,14 +87,20 @@ class PassiveDynamics:
     locator: object = field(default=None, repr=False)
     warnings: list = field(default_factory=list)
     caster: object = field(default=None, repr=False)
+    lamp_radiance: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    lamp_names: list = field(default_factory=list)
 
     @property
     def n_emitters(self):
         return len(self.emitter_radiance)
 
     @property
+    def n_lamps(self):
+        return len(self.lamp_radiance)
+
+    @property
     def n_terminals(self):
-        return self.n_emitters + 2
+        return self.n_emitters + 2 + self.n_lamps
 
     @property
     def n_columns(self):
@@ -110,7 +119,8 @@ class PassiveDynamics:
         return self.n_points * self.n_strata * self.rays_per_stratum
 
     def terminal_labels(self):
-        return [f"emitter:{n}" for n in self.emitter_names] + [WORLD, VOID]
+        return ([f"emitter:{n}" for n in self.emitter_names] + [WORLD, VOID]
+                + [f"lamp:{n}" for n in self.lamp_names])
 
     @property
     def row_sum_error(self):
@@ -217,7 +227,10 @@ class _DynamicsBuild:
         self.m, self.S = states.n_points, states.n_strata
         self.emitter_radiance = scene.emitter_groups()[1]
         self.E = len(self.emitter_radiance)
-        self.n_cols = self.m + self.E + 2
+        self.lamps = scene.lamps
+        self.n_cols = self.m + self.E + 2 + len(self.lamps)
+        self.seed = int(seed)
+        self.light_samples = int(light_samples)
         self.face_normals = scene.triangle_geometry()[0]
         # The locator's tables are built on a thread of their own while the BVH is built and the
         # first batches are traced: only the classification of the hits waits for them.
@@ -310,12 +323,15 @@ class _DynamicsBuild:
         tb = time.perf_counter()
         # The next-event rows need no locator: they are done first, while it may still be built.
         nee = self.emitter_entries(ids) if self.K else None
+        lamp = self.lamp_entries(ids) if len(self.lamps) else None
         col, tri, dist, c = self._classify(origins, dirs, hits, inside, out)
         rows, cols, weights = self._stratum_entries(ids, dirs, col, tri, dist)
+        for extra in (nee, lamp):
+            if extra is not None:
+                rows = np.concatenate([rows, extra[0]])
+                cols = np.concatenate([cols, extra[1]])
+                weights = np.concatenate([weights, extra[2]])
         if self.K:
-            rows = np.concatenate([rows, nee[0]])
-            cols = np.concatenate([cols, nee[1]])
-            weights = np.concatenate([weights, nee[2]])
             c["nee_rays"] = len(ids) * self.K
         n_rows = len(ids) * S
         block = sp.coo_matrix((weights, (rows, cols)), shape=(n_rows, self.n_cols)).tocsr()  # sums duplicates
@@ -392,6 +408,19 @@ class _DynamicsBuild:
         cols = self.m + self.sampler.emitter_of_triangle[tri_index.reshape(-1)[live]]
         return (owner * self.S + k).astype(np.int32), cols.astype(np.int32), weight.astype(np.float32)
 
+    def lamp_entries(self, ids):
+        """Light samples of the lamps (``Lamps.transitions``) for a batch of points: (row in the
+        batch, column, mass) filed under the stratum of each sample's direction; buried points
+        get none. Deterministic per batch (its own generator, whatever the thread order)."""
+        live = ids[~self.buried[ids]]
+        rng = np.random.default_rng([self.seed, 0x1A4B5, int(ids[0]) if len(ids) else 0])
+        owner, lamp, local, mass = self.lamps.transitions(self.lifted64[live], self.states.frames[live],
+                                                          max(self.light_samples, 1), rng, self.caster)
+        k = np.maximum(stratum_of_local_direction(local, self.states.strata_u, self.states.strata_v), 0)
+        rows = (live[owner] - ids[0]) * self.S + k
+        cols = self.m + self.E + 2 + lamp
+        return rows.astype(np.int32), cols.astype(np.int32), mass.astype(np.float32)
+
     # ---- assembly -------------------------------------------------------------------------------
 
     def _assemble(self, blocks, point_blocks, counts, locator, seconds):
@@ -414,6 +443,8 @@ class _DynamicsBuild:
             locator=locator,
             caster=self.caster,
             warnings=_buried_warnings(scene, states, self.buried),
+            lamp_radiance=np.asarray(self.lamps.emission, dtype=np.float64).reshape(-1, 3),
+            lamp_names=list(self.lamps.names),
         )
 
 
