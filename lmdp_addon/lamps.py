@@ -1,4 +1,4 @@
-"""Lamps: Blender's point, spot and sun lights as arrays, and their next-event estimation.
+"""Lamps: Blender's point, spot, sun and area lights as arrays, and their next-event estimation.
 
 Conventions are Cycles' (``scene/light.cpp``, ``kernel/light/{point,spot,distant}.h``), with
 ``strength`` = colour x power x 2^exposure (W; W/m² for a sun):
@@ -11,6 +11,12 @@ Conventions are Cycles' (``scene/light.cpp``, ``kernel/light/{point,spot,distant
 * **spot**: the point lamp times Cycles' cone mask ``smoothstep((cos ψ - cos(size/2)) /
   ((1 - cos(size/2)) · blend))``, ψ the angle between the lamp's -Z axis and the direction from
   the lamp's sampled point to the receiver.
+* **area** light (rectangle or ellipse, edges ``extent_u``, ``extent_v``, area A; A = π |u| |v| / 4
+  for an ellipse): radiance ``L = strength / (π A)`` (``normalize`` off: ``strength / π``)
+  towards the light's -Z only, times Cycles' spread attenuation
+  ``max((tan(s/2) - tan α) / (tan(s/2) - s/2), 0)`` (α the angle to the light's -Z, s the
+  spread; 1 at s = 180°). Sampled uniformly on its area. Unlike an emissive quad it occludes
+  nothing, as in Cycles.
 * **sun** of angular diameter 2θ: radiance ``L = strength / (π sin²θ)`` over the cone of
   half-angle θ about the direction to the sun (irradiance ``strength`` at normal incidence);
   θ = 0 is parallel light, D(y) = strength cos θ_y / π.
@@ -37,8 +43,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 INV_PI = 1.0 / np.pi
-POINT, SPOT, SUN = 0, 1, 2
-KIND_NAMES = ("point", "spot", "sun")
+POINT, SPOT, SUN, AREA = 0, 1, 2, 3
+KIND_NAMES = ("point", "spot", "sun", "area")
 #: Shadow rays end this fraction short of a lamp's sampled point (lamps are not geometry).
 SHADOW_SHORTEN = 1e-5
 #: Length of a shadow ray towards a sun (float32 embree; nothing in a scene is this far).
@@ -90,10 +96,14 @@ class Lamps:
     """Point, spot and sun lamps of a scene (L of them), world space.
 
     names        L names (the light objects)
-    kind         (L,) int8 :data:`POINT`, :data:`SPOT` or :data:`SUN`
-    position     (L, 3) float64 metres: centre of a point / spot lamp (unused for suns)
-    axis         (L, 3) unit: a spot's cone axis and the direction a sun's light travels
-                 (both the light's -Z); unused for point lamps
+    kind         (L,) int8 :data:`POINT`, :data:`SPOT`, :data:`SUN` or :data:`AREA`
+    position     (L, 3) float64 metres: centre of a point / spot / area lamp (unused for suns)
+    axis         (L, 3) unit: a spot's cone axis, the direction a sun's light travels and the
+                 side an area light emits to (all the light's -Z); unused for point lamps
+    extent_u, extent_v (L, 3) metres: an area light's edges (its scaled size along the light's
+                 X and Y; zero elsewhere)
+    ellipse      (L,) bool: a disk / ellipse area light (else a square / rectangle)
+    spread       (L,) radians: an area light's spread (π: a diffuse emitter)
     radius       (L,) metres: a point / spot lamp's radius (0: delta lamp)
     angle        (L,) radians: a sun's angular diameter (0: parallel light)
     sphere       (L,) bool: a lamp with a radius is a sphere (``use_soft_falloff`` off) or a
@@ -117,6 +127,10 @@ class Lamps:
     strength: np.ndarray = None
     normalize: np.ndarray = None
     cast_shadow: np.ndarray = None
+    extent_u: np.ndarray = None
+    extent_v: np.ndarray = None
+    ellipse: np.ndarray = None
+    spread: np.ndarray = None
 
     def __post_init__(self):
         L = len(self.names)
@@ -142,6 +156,15 @@ class Lamps:
         self.strength = np.maximum(column(self.strength, 0.0, np.float64, (3,)), 0.0)
         self.normalize = column(self.normalize, True, bool)
         self.cast_shadow = column(self.cast_shadow, True, bool)
+        self.extent_u = column(self.extent_u, 0.0, np.float64, (3,))
+        self.extent_v = column(self.extent_v, 0.0, np.float64, (3,))
+        self.ellipse = column(self.ellipse, False, bool)
+        self.spread = np.clip(column(self.spread, np.pi, np.float64), 1e-4, np.pi)
+        self.area = (np.linalg.norm(self.extent_u, axis=1) * np.linalg.norm(self.extent_v, axis=1)
+                     * np.where(self.ellipse, np.pi / 4.0, 1.0))
+        half = 0.5 * self.spread
+        self.tan_half_spread = np.where(self.spread >= np.pi, np.inf, np.tan(np.minimum(half, 1.5)))
+        self.normalize_spread = np.where(half > 0.05, 1.0 / (self.tan_half_spread - half), 3.0 / half ** 3)
         self.emission = self._emission()
         self.spot_cos_half = np.cos(0.5 * self.spot_size)
         with np.errstate(divide="ignore"):
@@ -154,19 +177,27 @@ class Lamps:
     def empty(self):
         return len(self.names) == 0
 
+    def arrays(self):
+        """Every array that defines the lamps (for fingerprints)."""
+        return (self.kind, self.position, self.axis, self.radius, self.angle, self.sphere, self.spot_size,
+                self.spot_blend, self.strength, self.normalize, self.cast_shadow, self.extent_u, self.extent_v,
+                self.ellipse, self.spread)
+
     def _emission(self):
         """(L, 3) z_T of each lamp: Cycles' ``strength x eval_fac`` (module docstring)."""
         r = self.radius
         area = np.where(self.kind == SUN,
                         np.where(self.angle > 0, np.pi * np.sin(0.5 * self.angle) ** 2, 1.0),
                         np.where(r > 0, 4.0 * np.pi * r * r, 4.0))
-        scale = np.where(self.normalize, 1.0 / area, 1.0)
+        area = np.where(self.kind == AREA, self.area, area)
+        with np.errstate(divide="ignore"):
+            scale = np.where(self.normalize, np.where(area > 0, 1.0 / np.where(area > 0, area, 1.0), 0.0), 1.0)
         scale = np.where(self.kind == SUN, scale, scale * INV_PI)
         return self.strength * scale[:, None]
 
     def is_delta(self):
         """(L,) bool: lamps reached along a single direction (one sample is exact)."""
-        return np.where(self.kind == SUN, self.angle <= 0, self.radius <= 0)
+        return np.where(self.kind == SUN, self.angle <= 0, (self.radius <= 0) & (self.kind != AREA))
 
     def power_density(self, scene_area):
         """Sum over the lamps of their power per unit area (Rec.709 luminance, W/m²): a sun's
@@ -176,6 +207,7 @@ class Lamps:
             return 0.0
         lum = self.strength @ np.array([0.2126, 0.7152, 0.0722])
         per = np.where(self.kind == SUN, lum, lum / max(float(scene_area), 1e-12))
+        per = np.where(self.kind == AREA, np.pi * (self.emission @ np.array([0.2126, 0.7152, 0.0722])), per)
         return float(per.sum())
 
     # ---- sampling ---------------------------------------------------------------------------------
@@ -193,6 +225,7 @@ class Lamps:
         weight = np.zeros(k)
         kind = self.kind[lamp]
         sun = kind == SUN
+        area = kind == AREA
         # ---- suns: parallel light or a uniform cone about the direction to the sun ----
         s = np.flatnonzero(sun)
         if len(s):
@@ -204,8 +237,12 @@ class Lamps:
             d[s] = np.where(cone[:, None], _uniform_cone(to_sun, np.where(cone, omc, 0.0), u[s]), to_sun)
             dist[s] = SUN_DISTANCE
             weight[s] = np.where(cone, 2.0 * np.pi * omc, 1.0)
+        # ---- area lights: uniform on the rectangle / ellipse, one-sided, the spread's attenuation ----
+        a = np.flatnonzero(area)
+        if len(a):
+            d[a], dist[a], weight[a] = self._connect_area(o[a], lamp[a], u[a])
         # ---- point and spot lamps ----
-        p = np.flatnonzero(~sun)
+        p = np.flatnonzero(~sun & ~area)
         if len(p):
             lp = lamp[p]
             c = self.position[lp]
@@ -265,6 +302,32 @@ class Lamps:
                 wp[sp] *= mask
             d[p], dist[p], weight[p] = dp, tp, np.where(np.isfinite(wp), wp, 0.0)
         return d, dist, weight
+
+    def _connect_area(self, o, lamp, u):
+        """:meth:`connect` for area lights: a point uniform on the shape, weight
+        ``A cos θ_l / t²`` x the spread attenuation (0 behind the light)."""
+        x, y = u[:, 0] - 0.5, u[:, 1] - 0.5
+        ell = np.flatnonzero(self.ellipse[lamp])
+        if len(ell):   # concentric map of the square to the unit disk, halved: the ellipse's (u, v)
+            a, b = 2.0 * x[ell], 2.0 * y[ell]
+            use_a = np.abs(a) > np.abs(b)
+            r = np.where(use_a, a, b)
+            phi = np.where(use_a, np.pi / 4 * b / np.where(a != 0, a, 1.0),
+                           np.pi / 2 - np.pi / 4 * a / np.where(b != 0, b, 1.0))
+            x[ell], y[ell] = 0.5 * r * np.cos(phi), 0.5 * r * np.sin(phi)
+        q = self.position[lamp] + x[:, None] * self.extent_u[lamp] + y[:, None] * self.extent_v[lamp]
+        v = q - o
+        t = np.linalg.norm(v, axis=1)
+        di = v / np.where(t > 0, t, 1.0)[:, None]
+        cos_l = -np.einsum("ij,ij->i", di, self.axis[lamp])
+        front = (cos_l > 0) & (t > 0)
+        cos_l = np.where(front, cos_l, 1.0)
+        tan_a = np.sqrt(np.maximum(1.0 - cos_l * cos_l, 0.0)) / cos_l
+        tan_h = self.tan_half_spread[lamp]
+        atten = np.where(np.isinf(tan_h), 1.0,
+                         np.maximum((np.where(np.isinf(tan_h), 0.0, tan_h) - tan_a) * self.normalize_spread[lamp], 0.0))
+        w = np.where(front, self.area[lamp] * cos_l / np.where(t > 0, t, 1.0) ** 2 * atten, 0.0)
+        return di, t, w
 
     def next_event(self, points, normals, rng, caster, lift=None, geometric=None):
         """``(values (k, 3) float32, shadow rays)``: the lamps' direct light D(y) = (1/π) ∫ L

@@ -97,8 +97,8 @@ def bad_uv_faces(scene, index, resolution):
 
 
 def scene_fingerprint(scene):
-    """Hash of the geometry, shading normals, materials, world and object names of a SceneArrays
-    (not the selection).
+    """Hash of the geometry, shading normals, materials, world, lamps and object names of a
+    SceneArrays (not the selection).
 
     Shading normals count where they shade: the corner normals of the
     ``SceneArrays.smooth_triangles`` (the others shade with their face normal, exactly as
@@ -115,6 +115,10 @@ def scene_fingerprint(scene):
         h.update(b"\0corner_normals\0")
         h.update(np.flatnonzero(smooth).astype(np.int64).tobytes())
         h.update(np.ascontiguousarray(scene.corner_normals[smooth], dtype=np.float32).tobytes())
+    if not scene.lamps.empty:   # scenes without lamps hash as before
+        h.update(b"\0lamps\0" + "\0".join(scene.lamps.names).encode())
+        for array in scene.lamps.arrays():
+            h.update(np.ascontiguousarray(array).tobytes())
     return h.hexdigest()
 
 
