@@ -125,8 +125,10 @@ class PassiveDynamics:
     @property
     def row_sum_error(self):
         """Largest deviation of a row sum of P from 1 (float32 rounding without next-event
-        estimation; Monte Carlo noise of the emitter terms with it)."""
-        return float(np.abs(np.asarray(self.P.sum(axis=1)).ravel() - 1.0).max()) if self.n_points else 0.0
+        estimation; Monte Carlo noise of the emitter terms with it). The lamps' columns are left
+        out: their masses are light, not probabilities (``lamps.py``)."""
+        P = self.P[:, :self.n_columns - self.n_lamps] if self.n_lamps else self.P
+        return float(np.abs(np.asarray(P.sum(axis=1)).ravel() - 1.0).max()) if self.n_points else 0.0
 
     def memory_bytes(self):
         return sum(m.data.nbytes + m.indices.nbytes + m.indptr.nbytes

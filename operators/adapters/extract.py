@@ -543,6 +543,14 @@ def _unsupported_light_features(name, obj, light, warnings):
                         "lights every bounce of the bake")
 
 
+def _shadow_flag_warning(name, obj, warnings):
+    """A warning for a mesh whose Object > Visibility > Shadow is off: in Cycles it casts no
+    shadows, here it does."""
+    if not getattr(obj, "visible_shadow", True):
+        warnings.append(f"Object '{name}': Visibility > Ray Visibility > Shadow off is not modelled; "
+                        "it casts shadows in the bake")
+
+
 def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
     """The evaluated mesh of ``inst`` in world space, with its materials and render UV map;
     returns False when it has no faces. ``fingerprint``: the object's :func:`object_fingerprint`
@@ -623,6 +631,7 @@ def extract_scene(context, selected_objects, depsgraph=None):
         if obj.type == 'LIGHT':
             _add_light(builder, name, inst, warnings, skipped_lights)
         elif obj.type in GEOMETRY_TYPES:
+            _shadow_flag_warning(name, obj, warnings)
             if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings):
                 captured.add(top.session_uid)
             if not inst.is_instance and mode_holding_mesh(obj.original) == "Sculpt Mode with Dynamic Topology":
