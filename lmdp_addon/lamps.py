@@ -21,12 +21,13 @@ Conventions are Cycles' (``scene/light.cpp``, ``kernel/light/{point,spot,distant
   half-angle θ about the direction to the sun (irradiance ``strength`` at normal incidence);
   θ = 0 is parallel light, D(y) = strength cos θ_y / π.
 
-Next-event estimation (:meth:`Lamps.next_event`) draws one sample of every lamp at every point,
-so a vertex's estimate of the lamps' direct light
+Next-event estimation (:meth:`Lamps.next_event`) draws one sample of every lamp at every point
+(up to :data:`ALL_LAMPS` lamps; with more, one lamp per point chosen by :meth:`Lamps.choose`
+and divided by its probability), so a vertex's estimate of the lamps' direct light
 
     D_lamps(y) = Σ_l (1/π) ∫_l L_l(ω) max(n_y · ω, 0) dω
 
-is unbiased (one shadow ray per lamp). The lamps are not geometry: BSDF-sampled rays never hit
+is unbiased. The lamps are not geometry: BSDF-sampled rays never hit
 them (Cycles' lights do not occlude either) and the lamps' light comes from light sampling
 alone, so no MIS weight is needed (unbiased, if noisier than Cycles' MIS very close to a big
 sphere lamp).
@@ -49,6 +50,10 @@ KIND_NAMES = ("point", "spot", "sun", "area")
 SHADOW_SHORTEN = 1e-5
 #: Length of a shadow ray towards a sun (float32 embree; nothing in a scene is this far).
 SUN_DISTANCE = 1e30
+#: Up to this many lamps every vertex samples each of them; with more, each vertex samples one
+#: lamp (:meth:`Lamps.choose`), so a scene of many lights costs one shadow ray per vertex.
+ALL_LAMPS = 4
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def _sin_sqr_to_one_minus_cos(s_sq):
@@ -344,11 +349,18 @@ class Lamps:
         eps = (np.float32(caster.offset()) if lift is None
                else np.asarray(lift, dtype=np.float32).reshape(-1, 1))
         lifted = (points + eps * (normals if geometric is None else geometric)).astype(np.float64)
-        owner = np.repeat(np.arange(k), L)
-        lamp = np.tile(np.arange(L), k)
-        u = rng.random((k * L, 2))
         nrm = np.asarray(normals, dtype=np.float64)
-        d, dist, weight = self.connect(lifted[owner], nrm[owner], lamp, u)
+        if L <= ALL_LAMPS:
+            owner = np.repeat(np.arange(k), L)
+            lamp = np.tile(np.arange(L), k)
+            u = rng.random((k * L, 2))
+            d, dist, weight = self.connect(lifted[owner], nrm[owner], lamp, u)
+        else:
+            owner = np.arange(k)
+            lamp, prob = self.choose(lifted, nrm, rng.random(k))
+            u = rng.random((k, 2))
+            d, dist, weight = self.connect(lifted, nrm, lamp, u)
+            weight = weight / prob
         cos = np.einsum("ij,ij->i", nrm[owner], d)
         valid = (cos > 0) & (weight > 0) & (dist > 0)
         if geometric is not None:
@@ -362,6 +374,37 @@ class Lamps:
         return out, rays
 
     direct_light = next_event
+
+    def choose(self, origins, normals, u):
+        """One lamp per point for scenes of many lamps: ``(lamp (k,), probability (k,))`` drawn
+        with ``u (k,)`` from the mixture ``½ e_l / Σ e + ½ / L``, e_l the luminance each lamp
+        would give without shadows if it were concentrated at its centre (its direction, for a
+        sun). The uniform half keeps every lamp's probability above 1/(2L), so the estimate
+        stays unbiased where the centre estimate is 0 but part of a lamp shines."""
+        k, L = len(origins), len(self.names)
+        lum = self.emission @ LUMINANCE
+        to_c = self.position[None, :, :] - origins[:, None, :]
+        d2 = np.maximum(np.einsum("kli,kli->kl", to_c, to_c), 1e-12)
+        w = to_c / np.sqrt(d2)[..., None]
+        cos_x = np.maximum(np.einsum("kli,ki->kl", w, normals), 0.0)
+        body = np.where(self.radius > 0, np.pi * self.radius ** 2, 1.0)
+        body = np.where(self.kind == AREA, self.area, body)
+        cos_l = np.where(self.kind == AREA, np.maximum(-np.einsum("kli,li->kl", w, self.axis), 0.0), 1.0)
+        spot = self.kind == SPOT
+        if np.any(spot):
+            cos_psi = -np.einsum("kli,li->kl", w, self.axis)
+            cos_l = np.where(spot, (cos_psi > self.spot_cos_half - 1e-3).astype(np.float64), cos_l)
+        est = lum * body * cos_x * cos_l / d2
+        sun = self.kind == SUN
+        if np.any(sun):
+            cos_sun = np.maximum(-normals @ self.axis.T, 0.0)
+            est = np.where(sun, lum * np.where(self.angle > 0, np.pi * np.sin(0.5 * self.angle) ** 2, 1.0) * cos_sun,
+                           est)
+        total = est.sum(axis=1, keepdims=True)
+        p = 0.5 / L + 0.5 * np.where(total > 0, est / np.where(total > 0, total, 1.0), 1.0 / L)
+        cdf = np.cumsum(p, axis=1)
+        lamp = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), L - 1)
+        return lamp, p[np.arange(k), lamp]
 
     def _visible(self, caster, origins, d, dist, lamp):
         """(k,) bool: the shadow rays that reach their lamps (lamps without ``use_shadow`` are
@@ -380,12 +423,12 @@ class Lamps:
         ``(owner (k,), lamp (k,), local directions (k, 3), mass (k,))`` of every unblocked light
         sample, with ``mass x emission[lamp]`` = the sample's share of the lamp's D(x).
         Delta lamps take one sample per point, the others ``samples`` (stratified in the first
-        uniform)."""
+        uniform; fewer, ``samples / (L // ALL_LAMPS)``, in scenes of many lamps)."""
         n, L = len(origins), len(self.names)
         none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
         if L == 0 or n == 0:
             return none
-        per = np.where(self.is_delta(), 1, max(int(samples), 1))
+        per = np.where(self.is_delta(), 1, max(int(samples) // max(L // ALL_LAMPS, 1), 1))
         lamp_of = np.repeat(np.arange(L), per)                 # one pattern of sum(per) samples
         j = np.concatenate([np.arange(c) for c in per])
         K = len(lamp_of)

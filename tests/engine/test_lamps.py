@@ -140,6 +140,33 @@ def test_area_lamp_gives_its_form_factor(shape):
     assert np.all(above == 0)
 
 
+def test_many_lamps_one_sample_each_vertex_is_unbiased():
+    """Beyond ALL_LAMPS lamps a vertex samples one lamp (by the mixture of ``Lamps.choose``):
+    the mean still is the sum of the lamps' exact direct light, with one shadow ray per vertex."""
+    from lmdp_addon.lamps import ALL_LAMPS
+    n = ALL_LAMPS + 3
+    rng = np.random.default_rng(7)
+    pos = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(0.3, 1.2, n)])
+    power = rng.uniform(1, 20, (n, 1)) * [1.0, 0.8, 0.6]
+    kinds = [POINT] * (n - 2) + [SPOT, SUN]
+    lamps = Lamps(names=[f"L{i}" for i in range(n)], kind=kinds, position=pos, strength=power,
+                  axis=[[0, 0, -1]] * (n - 1) + [[0.3, 0.0, -1.0]], spot_size=[np.pi] * (n - 2) + [1.2, np.pi],
+                  spot_blend=[0.0] * (n - 2) + [0.5, 0.0])
+    x = np.array([[0.2, -0.3, 0.0], [-0.8, 0.5, 0.0]])
+    scene = floor_scene(lamps)
+    exact = sum(estimates(floor_scene(Lamps(names=["one"], kind=[kinds[i]], position=[pos[i]], strength=[power[i]],
+                                            axis=[lamps.axis[i]], spot_size=[lamps.spot_size[i]],
+                                            spot_blend=[lamps.spot_blend[i]])), x, n=1)[0]
+                for i in range(n))
+    caster = RayCaster(scene)
+    _, rays = lamps.next_event(np.float32(x), np.float32([[0, 0, 1]] * 2), np.random.default_rng(0), caster,
+                               lift=np.full(2, 1e-7))
+    assert rays <= 2
+    values = estimates(scene, x, n=20000)
+    for i in range(2):
+        assert_within(values[:, i], exact[i])
+
+
 def test_no_lamps_draw_no_random_numbers():
     scene = floor_scene()
     rng = np.random.default_rng(3)
