@@ -402,6 +402,9 @@ def _lamp_record(name, matrix, light, warnings):
                   position=m[:3, 3], axis=axis / max(np.linalg.norm(axis), 1e-300),
                   strength=_light_strength(name, light, warnings),
                   normalize=bool(getattr(light, "normalize", True)), cast_shadow=bool(light.use_shadow))
+    if np.any(record["strength"] < 0):
+        warnings.append(f"Light '{name}': negative power or colour is not modelled; those channels emit "
+                        "nothing")
     if light.type == 'AREA':
         # Cycles' axes: the light's X and Y scaled by the object (normal: its -Z)
         size_u = light.size
