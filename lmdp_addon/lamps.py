@@ -15,7 +15,8 @@ Conventions are Cycles' (``scene/light.cpp``, ``kernel/light/{point,spot,distant
   for an ellipse): radiance ``L = strength / (π A)`` (``normalize`` off: ``strength / π``)
   towards the light's -Z only, times Cycles' spread attenuation
   ``max((tan(s/2) - tan α) / (tan(s/2) - s/2), 0)`` (α the angle to the light's -Z, s the
-  spread; 1 at s = 180°). Sampled uniformly on its area. Unlike an emissive quad it occludes
+  spread; 1 at s = 180°). Sampled uniformly on its area, a rectangle seen from closer than its
+  diagonal uniformly in its solid angle. Unlike an emissive quad it occludes
   nothing, as in Cycles.
 * **sun** of angular diameter 2θ: radiance ``L = strength / (π sin²θ)`` over the cone of
   half-angle θ about the direction to the sun (irradiance ``strength`` at normal incidence);
@@ -42,6 +43,8 @@ lamp's direct light / π, eq. 3.1's transition into an emitter.
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .sampling import spherical_triangle_sample, spherical_triangle_solid_angle
 
 INV_PI = 1.0 / np.pi
 POINT, SPOT, SUN, AREA = 0, 1, 2, 3
@@ -310,7 +313,47 @@ class Lamps:
 
     def _connect_area(self, o, lamp, u):
         """:meth:`connect` for area lights: a point uniform on the shape, weight
-        ``A cos θ_l / t²`` x the spread attenuation (0 behind the light)."""
+        ``A cos θ_l / t²`` x the spread attenuation (0 behind the light); rectangles seen from
+        closer than their diagonal uniformly in their solid angle Ω instead (two spherical
+        triangles, Arvo 1995; weight Ω x the attenuation), as Cycles samples them."""
+        half = 0.5 * (np.linalg.norm(self.extent_u[lamp], axis=1) ** 2
+                      + np.linalg.norm(self.extent_v[lamp], axis=1) ** 2)
+        d_plane = np.einsum("ij,ij->i", o - self.position[lamp], self.axis[lamp])
+        solid = np.flatnonzero(~self.ellipse[lamp] & (2.0 * half > d_plane * d_plane) & (d_plane > 0))
+        di, t, w = self._connect_area_points(o, lamp, u)
+        if len(solid):
+            di[solid], t[solid], w[solid] = self._connect_area_solid(o[solid], lamp[solid], u[solid])
+        return di, t, w
+
+    def _spread_attenuation(self, cos_l, lamp):
+        """Cycles' soft-box attenuation of area lights (1 for a spread of 180°)."""
+        tan_a = np.sqrt(np.maximum(1.0 - cos_l * cos_l, 0.0)) / np.maximum(cos_l, 1e-300)
+        tan_h = self.tan_half_spread[lamp]
+        return np.where(np.isinf(tan_h), 1.0,
+                        np.maximum((np.where(np.isinf(tan_h), 0.0, tan_h) - tan_a) * self.normalize_spread[lamp], 0.0))
+
+    def _connect_area_solid(self, o, lamp, u):
+        """Directions uniform in the solid angle of rectangle lamps (origins in front of them)."""
+        c = self.position[lamp]
+        eu, ev = 0.5 * self.extent_u[lamp], 0.5 * self.extent_v[lamp]
+        p00, p10, p11, p01 = c - eu - ev - o, c + eu - ev - o, c + eu + ev - o, c - eu + ev - o
+        t1 = np.stack([p00, p10, p11], axis=1)
+        t2 = np.stack([p00, p11, p01], axis=1)
+        o1, o2 = spherical_triangle_solid_angle(t1), spherical_triangle_solid_angle(t2)
+        omega = o1 + o2
+        f1 = o1 / np.where(omega > 0, omega, 1.0)
+        first = u[:, 0] < f1
+        u1 = np.where(first, u[:, 0] / np.where(f1 > 0, f1, 1.0), (u[:, 0] - f1) / np.where(f1 < 1, 1.0 - f1, 1.0))
+        di, _ = spherical_triangle_sample(np.where(first[:, None, None], t1, t2), np.clip(u1, 0.0, 1.0), u[:, 1])
+        n = self.axis[lamp]
+        cos_l = -np.einsum("ij,ij->i", di, n)
+        t = np.einsum("ij,ij->i", c - o, n) / np.where(cos_l != 0, -cos_l, -1.0)
+        ok = (cos_l > 0) & (t > 0) & (omega > 0)
+        w = np.where(ok, omega * self._spread_attenuation(np.where(ok, cos_l, 1.0), lamp), 0.0)
+        return di, np.where(ok, t, 0.0), w
+
+    def _connect_area_points(self, o, lamp, u):
+        """Points uniform on the area lamps' rectangles / ellipses."""
         x, y = u[:, 0] - 0.5, u[:, 1] - 0.5
         ell = np.flatnonzero(self.ellipse[lamp])
         if len(ell):   # concentric map of the square to the unit disk, halved: the ellipse's (u, v)
@@ -327,10 +370,7 @@ class Lamps:
         cos_l = -np.einsum("ij,ij->i", di, self.axis[lamp])
         front = (cos_l > 0) & (t > 0)
         cos_l = np.where(front, cos_l, 1.0)
-        tan_a = np.sqrt(np.maximum(1.0 - cos_l * cos_l, 0.0)) / cos_l
-        tan_h = self.tan_half_spread[lamp]
-        atten = np.where(np.isinf(tan_h), 1.0,
-                         np.maximum((np.where(np.isinf(tan_h), 0.0, tan_h) - tan_a) * self.normalize_spread[lamp], 0.0))
+        atten = self._spread_attenuation(cos_l, lamp)
         w = np.where(front, self.area[lamp] * cos_l / np.where(t > 0, t, 1.0) ** 2 * atten, 0.0)
         return di, t, w
 

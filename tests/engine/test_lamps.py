@@ -104,20 +104,23 @@ def test_sun_gives_its_strength_times_cosine(angle):
         assert_within(values, S / np.pi)
 
 
-@pytest.mark.parametrize("shape", ["rectangle", "ellipse", "spread"])
+@pytest.mark.parametrize("shape", ["rectangle", "rectangle_near", "ellipse", "spread"])
 def test_area_lamp_gives_its_form_factor(shape):
+    """Rectangles seen from closer than their diagonal are sampled in solid angle
+    ("rectangle_near", 0.15 m below), the others on their area."""
     a, b = 0.6, 0.4
+    h = 0.15 if shape == "rectangle_near" else H
     ellipse = shape == "ellipse"
     spread = np.radians(90.0) if shape == "spread" else np.pi
-    lamps = Lamps(names=["Panel"], kind=[AREA], position=[[0, 0, H]], axis=[[0, 0, -1]],
+    lamps = Lamps(names=["Panel"], kind=[AREA], position=[[0, 0, h]], axis=[[0, 0, -1]],
                   extent_u=[[a, 0, 0]], extent_v=[[0, b, 0]], ellipse=[ellipse], spread=[spread],
                   strength=[[20.0, 20.0, 20.0]])
     area = a * b * (np.pi / 4 if ellipse else 1.0)
     L = 20.0 / (np.pi * area)
     np.testing.assert_allclose(lamps.emission[0], L)
     values = estimates(floor_scene(lamps), [[0.0, 0.0, 0.0], [0.3, 0.1, 0.0]], n=20000)
-    if shape == "rectangle":
-        F = scenes.point_to_parallel_square_form_factor(a, H, np.array([[0.0, 0.0], [-0.3, -0.1]]), side_y=b)
+    if shape.startswith("rectangle"):
+        F = scenes.point_to_parallel_square_form_factor(a, h, np.array([[0.0, 0.0], [-0.3, -0.1]]), side_y=b)
     else:   # quadrature over the shape: (1/π) ∫ cos θ_x cos θ_l / d² x attenuation dA
         u, v = np.meshgrid((np.arange(400) + 0.5) / 400 - 0.5, (np.arange(400) + 0.5) / 400 - 0.5)
         inside = (u * u + v * v <= 0.25) if ellipse else np.ones_like(u, bool)
