@@ -521,15 +521,17 @@ def _add_light(builder, name, inst, warnings, skipped_lights):
     if light.type not in ('AREA', 'POINT', 'SPOT', 'SUN'):
         skipped_lights.append(f"'{name}' ({light.type.lower()})")
         return
-    if light.type == 'AREA' and light.cycles.is_portal:
+    if light.type == 'AREA' and light.original.cycles.is_portal:
         warnings.append(f"Light '{name}' is a portal: ignored")
         return
-    if not getattr(obj, "visible_diffuse", True):
+    if not getattr(obj.original, "visible_diffuse", True):
         warnings.append(f"Light '{name}' is invisible to diffuse rays (Object > Visibility): it lights "
                         "nothing the bake sees, and is left out")
         return
-    _unsupported_light_features(name, obj, light, warnings)
-    builder.lamps.append(_lamp_record(name, inst.matrix_world, light, warnings))
+    _unsupported_light_features(name, obj.original, light, warnings)   # the user's settings
+    record = _lamp_record(name, inst.matrix_world, light, warnings)
+    if np.any(record["strength"] > 0):   # a light of power 0 lights nothing
+        builder.lamps.append(record)
 
 
 def _unsupported_light_features(name, obj, light, warnings):
@@ -541,15 +543,16 @@ def _unsupported_light_features(name, obj, light, warnings):
     if getattr(obj, "lightgroup", ""):
         warnings.append(f"Light '{name}': light group '{obj.lightgroup}' is not modelled; the bake holds "
                         "every light")
-    if light.cycles.max_bounces < 1024:
-        warnings.append(f"Light '{name}': its Max Bounces ({light.cycles.max_bounces}) is not modelled; it "
-                        "lights every bounce of the bake")
+    bounces = light.original.cycles.max_bounces   # add-on properties: read the user's own
+    if bounces < 1024:
+        warnings.append(f"Light '{name}': its Max Bounces ({bounces}) is not modelled; it lights every "
+                        "bounce of the bake")
 
 
 def _shadow_flag_warning(name, obj, warnings):
     """A warning for a mesh whose Object > Visibility > Shadow is off: in Cycles it casts no
     shadows, here it does."""
-    if not getattr(obj, "visible_shadow", True):
+    if not getattr(obj.original, "visible_shadow", True):
         warnings.append(f"Object '{name}': Visibility > Ray Visibility > Shadow off is not modelled; "
                         "it casts shadows in the bake")
 

@@ -263,3 +263,30 @@ def test_gltf_with_point_spot_and_sun_lights_bakes_like_cycles(fresh_scene, lmdp
         rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
         print(f"glTF {name}: rel {np.round(rel * 100, 2)} % ± {np.round(rel_sigma * 100, 2)} %")
         assert np.all(np.abs(rel) < 0.03), (name, rel)
+
+
+def test_what_lamps_do_not_model_is_named_per_light(fresh_scene, lmdp_ext):
+    """Light linking, light groups, IES textures, a light's Max Bounces, negative power and
+    meshes that cast no shadow are each named in a warning; a light invisible to diffuse rays
+    and a light of power 0 are left out."""
+    cornell_without_light(lmdp_ext)
+    linked = add_light('POINT', "Linked", (0.0, 0.0, 0.8), energy=10.0)
+    collection = bpy.data.collections.new("Receivers")
+    linked.light_linking.receiver_collection = collection
+    add_light('POINT', "Grouped", (0.1, 0.0, 0.8), energy=10.0).lightgroup = "key"
+    ies = add_light('SPOT', "Profiled", (0.2, 0.0, 0.8), energy=10.0)
+    ies.data.use_nodes = True
+    ies.data.node_tree.nodes.new("ShaderNodeTexIES")
+    add_light('POINT', "Short", (0.0, 0.2, 0.8), energy=10.0).data.cycles.max_bounces = 2
+    add_light('POINT', "Negative", (0.0, -0.2, 0.8), energy=-5.0)
+    add_light('POINT', "Off", (0.0, 0.3, 0.8), energy=0.0)
+    add_light('SUN', "Hidden", (0.0, 0.0, 2.0), energy=1.0).visible_diffuse = False
+    bpy.data.objects["TallBox"].visible_shadow = False
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    arrays = extract.extract_scene(bpy.context, [bpy.data.objects["Floor"]])
+    text = "\n".join(arrays.warnings)
+    for name, words in (("Linked", "light linking"), ("Grouped", "light group"), ("Profiled", "IES"),
+                        ("Short", "Max Bounces"), ("Negative", "negative"), ("Hidden", "invisible to diffuse"),
+                        ("TallBox", "Shadow off")):
+        assert any(f"'{name}'" in w and words in w for w in arrays.warnings), (name, text)
+    assert sorted(arrays.lamps.names) == ["Grouped", "Linked", "Profiled", "Short"], arrays.lamps.names
