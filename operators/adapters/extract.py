@@ -530,7 +530,13 @@ def _add_light(builder, name, inst, warnings, skipped_lights):
         return
     _unsupported_light_features(name, obj.original, light, warnings)   # the user's settings
     record = _lamp_record(name, inst.matrix_world, light, warnings)
-    if np.any(record["strength"] > 0):   # a light of power 0 lights nothing
+    numbers = [np.asarray(v, dtype=np.float64) for k, v in record.items() if k not in ("name", "kind")]
+    if not all(np.all(np.isfinite(v)) for v in numbers):
+        warnings.append(f"Light '{name}' has a non-finite transform, size or power (Inf or NaN): it is "
+                        "left out; fix its transform or settings")
+        return
+    size = np.linalg.norm(record["extent_u"]) * np.linalg.norm(record["extent_v"]) if light.type == 'AREA' else 1.0
+    if np.any(record["strength"] > 0) and size > 0:   # a light of power or size 0 lights nothing
         builder.lamps.append(record)
 
 
