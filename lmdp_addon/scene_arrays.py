@@ -48,7 +48,8 @@ class SceneArrays:
                         or None: every triangle is flat (its face normal). Corners that equal
                         the face normal (flat faces) are flat: :meth:`smooth_triangles`
     world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays
-    lamps               :class:`~lmdp_addon.lamps.Lamps`: point, spot and sun lights (default none)
+    lamps               :class:`~lmdp_addon.lamps.Lamps`: point, spot, sun and area lights (default
+                        none)
     warnings            messages for the user gathered during extraction, and one per object
                         with triangles that are left out (:meth:`usable_triangles`)
     """

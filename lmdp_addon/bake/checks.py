@@ -148,7 +148,8 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
     texels, skipped = _check_texels(scene, names, indices, R) if rasterise else ({}, [])
     if not scene.has_light():
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
-                         "shader or Principled emission), a light (point, spot, sun or area), or a non-black world")
+                         "shader or Principled emission), a light (point, spot, sun or area), or a "
+                         "non-black world")
     warnings = _check_solution(scene, names, settings, lmdp, will_solve)
     if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "

@@ -17,9 +17,9 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 * at every later vertex y_k (k = 1 .. max_bounces) the throughput is ``β_k = β_{k-1} w_{k-1} ρ(y_k)``
   and **next-event estimation** samples one point on the emitters with a shadow ray
   (:meth:`~lmdp_addon.lights.EmitterSampler.next_event`); one-sided emitters (area lights) count
-  only on their front side, mesh emission on both (``SceneArrays``); point, spot and sun lamps
-  add one light sample each (:meth:`~lmdp_addon.lamps.Lamps.next_event`, no MIS: rays never
-  hit them);
+  only on their front side, mesh emission on both (``SceneArrays``); Blender's lights (point,
+  spot, sun and area lamps) add their light samples (:meth:`~lmdp_addon.lamps.Lamps.next_event`,
+  no MIS: rays never hit them);
 * emitters hit by a ray sampled at y_k (k >= 1) are counted too, and the two estimates of the
   emitted light are combined by multiple importance sampling
   (:meth:`~lmdp_addon.lights.EmitterSampler.emission_hits`); the emitter hit by the texel's own
@@ -201,7 +201,7 @@ class IndirectTracer:
                                                          geometric=gnrm if self.smooth else None)
             stats.shadow_rays += shadow_rays
             L[idx] += beta * direct
-            if not self.lamps.empty:   # point, spot and sun lamps: light sampling alone (lamps.py)
+            if not self.lamps.empty:   # Blender's lights: light sampling alone (lamps.py)
                 direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
                                                             geometric=gnrm if self.smooth else None)
                 stats.shadow_rays += shadow_rays

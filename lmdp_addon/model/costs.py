@@ -1,19 +1,20 @@
 """State costs and the first-exit LMDP (thesis 3.1.3, 3.1.4).
 
 The first-exit LMDP (Todorov 2009) splits the states into non-terminal N (the surface points)
-and terminal T (emitters, world, void) and asks for the desirability
+and terminal T (emitters, world, void, lamps) and asks for the desirability
 
     z_N = Q_N (P_NN z_N + P_NT z_T),      Q = diag(exp(-λ g)),          (eq. 2.22, first exit)
 
 with z_T fixed. Two cost modes build Q, P and z_T (see ``design.md``):
 
 * ``THESIS``  : P normalised with the ε self-loop of eq. 3.1; g = 1 on points, 0 on emitters;
-                z_T = 1 on emitters and lamps (and a non-black world), 0 on the void; λ = thesis default
-                (sum of the lights' power per unit area) times ``lambda_scale``.
+                z_T = 1 on emitters and lamps (and a non-black world), 0 on the void;
+                λ = thesis default (sum of the lights' power per unit area) x ``lambda_scale``.
 * ``PHYSICAL``: P = cosine-weighted form factors; Q = diag(albedo) per RGB channel (g = -log
                 albedo, λ = 1); z_T = emitted radiance (a lamp's ``Lamps.emission``, which its
-                light samples' mass turns into its direct light, see ``lamps.py``). Then the equation above *is* the
-                discretised light transport equation (eq. 2.7): z_N is the outgoing radiance.
+                light samples' mass turns into its direct light, see ``lamps.py``). Then the
+                equation above *is* the discretised light transport equation (eq. 2.7): z_N is
+                the outgoing radiance.
 """
 from dataclasses import dataclass
 

@@ -13,12 +13,16 @@ density proportional to BRDF·cos within the stratum, so each carries exactly ``
 * the void terminal (z = 0): geometry that carries no states, back faces (of one-sided emitters
   and of every surface), hits with no compatible state, and escapes into a black world.
 
+Blender's lights (``SceneArrays.lamps``) are terminals too, one column each after the void, that
+no ray hits: their transitions come from light samples alone (:meth:`_DynamicsBuild.lamp_entries`,
+``lamps.Lamps.transitions``), with a mass that times their z_T gives their direct light / π.
+
 Buried points (:func:`~lmdp_addon.model.locator.buried_points`: inside solids, pressed against
 other objects, over the back of a lamp) are states no ray lands on, and their own rays all go to
 the void.
 
 The estimate of each p(x'|x) is unbiased, and since the stratum masses sum to one and every ray
-lands somewhere, each row of P sums to exactly one.
+lands somewhere, each row of P sums to exactly one (its lamp columns left out).
 No Python loop runs over rays or states: rays are generated, traced and binned in large batches
 (:class:`_DynamicsBuild`), several at a time on a small thread pool.
 """
@@ -71,7 +75,7 @@ class PassiveDynamics:
     lamp_radiance        (L, 3) z_T of each lamp terminal (``Lamps.emission``)
     lamp_names           L names (the light objects)
     Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E`` world, ``m+E+1`` void,
-    ``m+E+2..`` lamps (point, spot, sun: reached only through light samples, ``lamps.py``).
+    ``m+E+2..`` lamps (Blender's lights: reached only through light samples, ``lamps.py``).
     """
 
     stratum_transitions: sp.csr_matrix
