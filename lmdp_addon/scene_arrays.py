@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import SceneError
+from .lamps import Lamps
 
 #: Guards the nesting count of ``SceneArrays.held`` (the build's threads share a scene).
 _HOLD_LOCK = threading.Lock()
@@ -50,6 +51,8 @@ class SceneArrays:
                         ``environment``, its mean radiance over the sphere
     environment         :class:`~lmdp_addon.world.EnvironmentMap` of a world that is not uniform
                         (an HDRI), or None: escaping rays see ``world_radiance``
+    lamps               :class:`~lmdp_addon.lamps.Lamps`: point, spot, sun and area lights (default
+                        none)
     warnings            messages for the user gathered during extraction, and one per object
                         with triangles that are left out (:meth:`usable_triangles`)
     """
@@ -68,6 +71,7 @@ class SceneArrays:
     warnings: list = field(default_factory=list)
     corner_normals: np.ndarray = None
     environment: object = None
+    lamps: Lamps = None
     _held: dict = field(default=None, init=False, repr=False, compare=False)
     _hold_depth: int = field(default=0, init=False, repr=False, compare=False)
 
@@ -97,6 +101,8 @@ class SceneArrays:
             raise SceneError("Scene arrays are inconsistent: a triangle indexes a missing vertex")
         if t and (self.triangle_object.min() < 0 or self.triangle_object.max() >= len(self.object_names)):
             raise SceneError("Scene arrays are inconsistent: a triangle names a missing object")
+        if self.lamps is None:
+            self.lamps = Lamps()
         self.warnings = list(self.warnings)
         for message in self._unusable_warnings():
             if message not in self.warnings:
@@ -285,11 +291,12 @@ class SceneArrays:
         total = float(np.pi * luminance(radiance).sum()) if len(radiance) else 0.0
         if np.any(self.world_radiance > 0):
             total += float(np.pi * luminance(self.world_radiance))
-        return total
+        return total + self.lamps.power_density(self.triangle_geometry()[1].sum())
 
     def has_light(self):
-        """True when some emitter or a non-black world can light the scene."""
-        return bool(np.any(self.is_emissive() & self.valid_triangles()) or np.any(self.world_radiance > 0))
+        """True when some emitter, lamp or a non-black world can light the scene."""
+        return bool(np.any(self.is_emissive() & self.valid_triangles()) or np.any(self.world_radiance > 0)
+                    or np.any(self.lamps.emission > 0))
 
     def check_for_lmdp(self):
         """Raise :class:`SceneError` (user message) when no LMDP can be built from this scene."""
@@ -303,4 +310,4 @@ class SceneArrays:
         if not self.has_light():
             raise SceneError(
                 "The scene has no light the LMDP can use: add an emissive material (Emission shader "
-                "or Principled emission), an area light, or a non-black world colour")
+                "or Principled emission), a light, or a non-black world colour")

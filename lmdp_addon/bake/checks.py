@@ -97,8 +97,8 @@ def bad_uv_faces(scene, index, resolution):
 
 
 def scene_fingerprint(scene):
-    """Hash of the geometry, shading normals, materials, world and object names of a SceneArrays
-    (not the selection).
+    """Hash of the geometry, shading normals, materials, world, lamps and object names of a
+    SceneArrays (not the selection).
 
     Shading normals count where they shade: the corner normals of the
     ``SceneArrays.smooth_triangles`` (the others shade with their face normal, exactly as
@@ -118,6 +118,10 @@ def scene_fingerprint(scene):
     if getattr(scene, "environment", None) is not None:
         h.update(b"\0environment\0")
         for array in scene.environment.fingerprint_arrays():
+            h.update(np.ascontiguousarray(array).tobytes())
+    if not scene.lamps.empty:   # scenes without lamps hash as before
+        h.update(b"\0lamps\0" + "\0".join(scene.lamps.names).encode())
+        for array in scene.lamps.arrays():
             h.update(np.ascontiguousarray(array).tobytes())
     return h.hexdigest()
 
@@ -148,7 +152,8 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
     texels, skipped = _check_texels(scene, names, indices, R) if rasterise else ({}, [])
     if not scene.has_light():
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
-                         "shader or Principled emission), an area light, or a non-black world")
+                         "shader or Principled emission), a light (point, spot, sun or area), or a "
+                         "non-black world")
     warnings = _check_solution(scene, names, settings, lmdp, will_solve)
     if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "

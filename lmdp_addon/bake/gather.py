@@ -150,8 +150,9 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
 
     estimated with ``rays_per_point`` cosine-distributed rays per point (a jittered square
     grid through the concentric map) and one light sample at each hit (``D_e`` by
-    :meth:`~lmdp_addon.lights.EmitterSampler.direct_light`, as the tracer samples it; plus the
-    world's by :func:`~lmdp_addon.world.next_event` when the scene has an environment map). Rays that
+    :meth:`~lmdp_addon.lights.EmitterSampler.direct_light` and the lamps'
+    :meth:`~lmdp_addon.lamps.Lamps.direct_light`, as the tracer samples it; plus the world's by
+    :func:`~lmdp_addon.world.next_event` when the scene has an environment map). Rays that
     escape or meet an emitter or the back of a face give 0 (the direct light of x itself and the
     void of the passive dynamics). Hidden (buried) points get 0, and so do the points not in
     ``points`` (indices; default all). The build's ray caster and its locator's ``targets``
@@ -204,9 +205,14 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         if smooth:
             ns = scene.shading_normals(t, bu[hit], bv[hit])        # the front was hit (keep)
             direct = lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t), geometric=ng)[0]
+            if not scene.lamps.empty:
+                direct = direct + scene.lamps.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
+                                                           geometric=ng)[0]
         else:
             ns = ng
             direct = lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+            if not scene.lamps.empty:
+                direct = direct + scene.lamps.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
         if environment is not None:    # the world's direct light at the hit, by world sampling
             direct = direct + world_light.next_event(
                 environment, pos.astype(np.float32), ns.astype(np.float32), rng, caster,
@@ -249,7 +255,10 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
     E = len(lmdp.dynamics.emitter_radiance)
     P_NN = problem.P_NN
     q = np.asarray(problem.q, dtype=np.float64)
-    w = np.asarray(problem.P_NT[:, E:] @ problem.z_terminal[E:], dtype=np.float64)   # world (void: 0)
+    # world (W columns) and void (z = 0); the lamps' columns after them are direct light, sampled
+    # at the hits
+    W1 = lmdp.dynamics.n_world + 1
+    w = np.asarray(problem.P_NT[:, E:E + W1] @ problem.z_terminal[E:E + W1], dtype=np.float64)
     if _environment(lmdp.scene) is not None:
         # An environment map: its direct light is sampled where it arrives (b at the hits, the
         # tracer at the gather point), so ẑ is the indirect light alone, from ẑ = 0.

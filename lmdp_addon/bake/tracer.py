@@ -17,7 +17,9 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 * at every later vertex y_k (k = 1 .. max_bounces) the throughput is ``β_k = β_{k-1} w_{k-1} ρ(y_k)``
   and **next-event estimation** samples one point on the emitters with a shadow ray
   (:meth:`~lmdp_addon.lights.EmitterSampler.next_event`); one-sided emitters (area lights) count
-  only on their front side, mesh emission on both (``SceneArrays``);
+  only on their front side, mesh emission on both (``SceneArrays``); Blender's lights (point,
+  spot, sun and area lamps) add their light samples (:meth:`~lmdp_addon.lamps.Lamps.next_event`,
+  no MIS: rays never hit them);
 * emitters hit by a ray sampled at y_k (k >= 1) are counted too, and the two estimates of the
   emitted light are combined by multiple importance sampling
   (:meth:`~lmdp_addon.lights.EmitterSampler.emission_hits`); the emitter hit by the texel's own
@@ -121,6 +123,7 @@ class IndirectTracer:
         self.rr_start = int(rr_start)
         self.caster = caster or RayCaster(scene)
         self.lights = EmitterSampler(scene)
+        self.lamps = scene.lamps
         corners = scene.corners()
         self.corner0 = corners[:, 0].astype(np.float32)
         self.edge1 = (corners[:, 1] - corners[:, 0]).astype(np.float32)
@@ -220,6 +223,12 @@ class IndirectTracer:
                                                          geometric=gnrm if self.smooth else None)
             stats.shadow_rays += shadow_rays
             L[idx] += beta * direct
+            if not self.lamps.empty:   # Blender's lights: light sampling alone (lamps.py)
+                lamp_direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
+                                                                 geometric=gnrm if self.smooth else None)
+                stats.shadow_rays += shadow_rays
+                L[idx] += beta * lamp_direct
+                direct = direct + lamp_direct
             if self.environment is not None:   # ---- the world's half of its MIS estimate ----
                 world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster,
                                                                    lift, geometric=gnrm if self.smooth else None)
@@ -327,6 +336,12 @@ class IndirectTracer:
                 geometric=rows(gnrm, g) if self.smooth else None, mis=False)
             stats.shadow_rays += shadow_rays
             direct = direct + world_direct
+        if not self.lamps.empty:
+            lamp_direct, shadow_rays = self.lamps.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster,
+                                                               lift=np.take(lift, g),
+                                                               geometric=rows(gnrm, g) if self.smooth else None)
+            stats.shadow_rays += shadow_rays
+            direct = direct + lamp_direct
         L[idx[g]] += rows(beta, g) * (value[g].astype(np.float32) + direct)
         stats.gathered += int(done.sum())
         stats.gather_fallback += int((~done).sum())

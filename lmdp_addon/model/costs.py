@@ -1,19 +1,21 @@
 """State costs and the first-exit LMDP (thesis 3.1.3, 3.1.4).
 
 The first-exit LMDP (Todorov 2009) splits the states into non-terminal N (the surface points)
-and terminal T (emitters, world, void) and asks for the desirability
+and terminal T (emitters, world, void, lamps) and asks for the desirability
 
     z_N = Q_N (P_NN z_N + P_NT z_T),      Q = diag(exp(-λ g)),          (eq. 2.22, first exit)
 
 with z_T fixed. Two cost modes build Q, P and z_T (see ``design.md``):
 
 * ``THESIS``  : P normalised with the ε self-loop of eq. 3.1; g = 1 on points, 0 on emitters;
-                z_T = 1 on emitters (and a non-black world; per direction bin of an environment map
-                its luminance relative to the brightest bin), 0 on the void; λ = thesis default
-                (sum of the lights' power per unit area) times ``lambda_scale``.
+                z_T = 1 on emitters and lamps (and a non-black world; per direction bin of an
+                environment map its luminance relative to the brightest bin), 0 on the void;
+                λ = thesis default (sum of the lights' power per unit area) x ``lambda_scale``.
 * ``PHYSICAL``: P = cosine-weighted form factors; Q = diag(albedo) per RGB channel (g = -log
-                albedo, λ = 1); z_T = emitted radiance. Then the equation above *is* the
-                discretised light transport equation (eq. 2.7): z_N is the outgoing radiance.
+                albedo, λ = 1); z_T = emitted radiance (a lamp's ``Lamps.emission``, which its
+                light samples' mass turns into its direct light, see ``lamps.py``). Then the
+                equation above *is* the discretised light transport equation (eq. 2.7): z_N is
+                the outgoing radiance.
 """
 from dataclasses import dataclass
 
@@ -102,7 +104,7 @@ def build_first_exit_lmdp(dynamics, states, cost_mode="PHYSICAL", lambda_=None, 
         world = luminance(dynamics.world_terminal_radiance())
         # 1 on a lit uniform world; per direction bin its luminance relative to the brightest
         world_z = world / world.max() if world.max() > 0 else np.zeros_like(world)
-        z_terminal = np.concatenate([np.ones(E), world_z, [0.0]]).reshape(-1, 1)
+        z_terminal = np.concatenate([np.ones(E), world_z, [0.0], np.ones(dynamics.n_lamps)]).reshape(-1, 1)
         lam = float(lambda_)
     else:
         eps = 0.0
@@ -111,7 +113,8 @@ def build_first_exit_lmdp(dynamics, states, cost_mode="PHYSICAL", lambda_=None, 
         with np.errstate(divide="ignore"):
             g = -np.log(albedo)
         z_terminal = np.vstack([dynamics.emitter_radiance.reshape(E, 3),
-                                dynamics.world_terminal_radiance(), np.zeros((1, 3))])
+                                dynamics.world_terminal_radiance(), np.zeros((1, 3)),
+                                dynamics.lamp_radiance.reshape(-1, 3)])
         lam = 1.0
     return FirstExitLMDP(P=sp.csr_matrix(P), q=q, z_terminal=z_terminal, lambda_=lam,
                          cost_mode=cost_mode, g=g, epsilon=eps)

@@ -15,12 +15,16 @@ density proportional to BRDF·cos within the stratum, so each carries exactly ``
 * the void terminal (z = 0): geometry that carries no states, back faces (of one-sided emitters
   and of every surface), hits with no compatible state, and escapes into a black world.
 
+Blender's lights (``SceneArrays.lamps``) are terminals too, one column each after the void, that
+no ray hits: their transitions come from light samples alone (:meth:`_DynamicsBuild.lamp_entries`,
+``lamps.Lamps.transitions``), with a mass that times their z_T gives their direct light / π.
+
 Buried points (:func:`~lmdp_addon.model.locator.buried_points`: inside solids, pressed against
 other objects, over the back of a lamp) are states no ray lands on, and their own rays all go to
 the void.
 
 The estimate of each p(x'|x) is unbiased, and since the stratum masses sum to one and every ray
-lands somewhere, each row of P sums to exactly one.
+lands somewhere, each row of P sums to exactly one (its lamp columns left out).
 No Python loop runs over rays or states: rays are generated, traced and binned in large batches
 (:class:`_DynamicsBuild`), several at a time on a small thread pool.
 """
@@ -74,8 +78,11 @@ class PassiveDynamics:
     warnings             messages for the user (objects mostly buried)
     caster               the :class:`~lmdp_addon.raycast.RayCaster` (BVH) the rays were traced
                          with; the bake of the same scene traces with it too
+    lamp_radiance        (L, 3) z_T of each lamp terminal (``Lamps.emission``)
+    lamp_names           L names (the light objects)
     Columns: ``0..m-1`` points, ``m..m+E-1`` emitters, ``m+E..m+E+W-1`` world (W = 1 for a
-    uniform world), ``m+E+W`` void.
+    uniform world), ``m+E+W`` void, ``m+E+W+1..`` lamps (Blender's lights: reached only through
+    light samples, ``lamps.py``).
     """
 
     stratum_transitions: sp.csr_matrix
@@ -92,6 +99,8 @@ class PassiveDynamics:
     warnings: list = field(default_factory=list)
     caster: object = field(default=None, repr=False)
     world_bins: np.ndarray = None
+    lamp_radiance: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    lamp_names: list = field(default_factory=list)
 
     @property
     def n_emitters(self):
@@ -109,8 +118,12 @@ class PassiveDynamics:
         return np.asarray(self.world_bins, dtype=np.float64).reshape(-1, 3)
 
     @property
+    def n_lamps(self):
+        return len(self.lamp_radiance)
+
+    @property
     def n_terminals(self):
-        return self.n_emitters + self.n_world + 1
+        return self.n_emitters + self.n_world + 1 + self.n_lamps
 
     @property
     def n_columns(self):
@@ -135,13 +148,16 @@ class PassiveDynamics:
 
     def terminal_labels(self):
         world = [WORLD] if self.world_bins is None else [f"{WORLD}:{k}" for k in range(self.n_world)]
-        return [f"emitter:{n}" for n in self.emitter_names] + world + [VOID]
+        return ([f"emitter:{n}" for n in self.emitter_names] + world + [VOID]
+                + [f"lamp:{n}" for n in self.lamp_names])
 
     @property
     def row_sum_error(self):
         """Largest deviation of a row sum of P from 1 (float32 rounding without next-event
-        estimation; Monte Carlo noise of the emitter terms with it)."""
-        return float(np.abs(np.asarray(self.P.sum(axis=1)).ravel() - 1.0).max()) if self.n_points else 0.0
+        estimation; Monte Carlo noise of the emitter terms with it). The lamps' columns are left
+        out: their masses are light, not probabilities (``lamps.py``)."""
+        P = self.P[:, :self.n_columns - self.n_lamps] if self.n_lamps else self.P
+        return float(np.abs(np.asarray(P.sum(axis=1)).ravel() - 1.0).max()) if self.n_points else 0.0
 
     def memory_bytes(self):
         return sum(m.data.nbytes + m.indices.nbytes + m.indptr.nbytes
@@ -243,7 +259,10 @@ class _DynamicsBuild:
         self.emitter_radiance = scene.emitter_groups()[1]
         self.E = len(self.emitter_radiance)
         self.W = world_bin_count(_environment(scene))
-        self.n_cols = self.m + self.E + self.W + 1
+        self.lamps = scene.lamps
+        self.n_cols = self.m + self.E + self.W + 1 + len(self.lamps)
+        self.seed = int(seed)
+        self.light_samples = int(light_samples)
         self.face_normals = scene.triangle_geometry()[0]
         # The locator's tables are built on a thread of their own while the BVH is built and the
         # first batches are traced: only the classification of the hits waits for them.
@@ -336,12 +355,15 @@ class _DynamicsBuild:
         tb = time.perf_counter()
         # The next-event rows need no locator: they are done first, while it may still be built.
         nee = self.emitter_entries(ids) if self.K else None
+        lamp = self.lamp_entries(ids) if len(self.lamps) else None
         col, tri, dist, c = self._classify(origins, dirs, hits, inside, out)
         rows, cols, weights = self._stratum_entries(ids, dirs, col, tri, dist)
+        for extra in (nee, lamp):
+            if extra is not None:
+                rows = np.concatenate([rows, extra[0]])
+                cols = np.concatenate([cols, extra[1]])
+                weights = np.concatenate([weights, extra[2]])
         if self.K:
-            rows = np.concatenate([rows, nee[0]])
-            cols = np.concatenate([cols, nee[1]])
-            weights = np.concatenate([weights, nee[2]])
             c["nee_rays"] = len(ids) * self.K
         n_rows = len(ids) * S
         block = sp.coo_matrix((weights, (rows, cols)), shape=(n_rows, self.n_cols)).tocsr()  # sums duplicates
@@ -418,6 +440,19 @@ class _DynamicsBuild:
         cols = self.m + self.sampler.emitter_of_triangle[tri_index.reshape(-1)[live]]
         return (owner * self.S + k).astype(np.int32), cols.astype(np.int32), weight.astype(np.float32)
 
+    def lamp_entries(self, ids):
+        """Light samples of the lamps (``Lamps.transitions``) for a batch of points: (row in the
+        batch, column, mass) filed under the stratum of each sample's direction; buried points
+        get none. Deterministic per batch (its own generator, whatever the thread order)."""
+        live = ids[~self.buried[ids]]
+        rng = np.random.default_rng([self.seed, 0x1A4B5, int(ids[0]) if len(ids) else 0])
+        owner, lamp, local, mass = self.lamps.transitions(self.lifted64[live], self.states.frames[live],
+                                                          max(self.light_samples, 1), rng, self.caster)
+        k = np.maximum(stratum_of_local_direction(local, self.states.strata_u, self.states.strata_v), 0)
+        rows = (live[owner] - ids[0]) * self.S + k
+        cols = self.m + self.E + self.W + 1 + lamp
+        return rows.astype(np.int32), cols.astype(np.int32), mass.astype(np.float32)
+
     # ---- assembly -------------------------------------------------------------------------------
 
     def _assemble(self, blocks, point_blocks, counts, locator, seconds):
@@ -441,6 +476,8 @@ class _DynamicsBuild:
             locator=locator,
             caster=self.caster,
             warnings=_buried_warnings(scene, states, self.buried),
+            lamp_radiance=np.asarray(self.lamps.emission, dtype=np.float64).reshape(-1, 3),
+            lamp_names=list(self.lamps.names),
         )
 
 

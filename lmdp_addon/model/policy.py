@@ -80,7 +80,10 @@ def stratum_policy(dynamics, solution, columns="all"):
     rows, _, w = _scaled_entries(Pk, row_point, solution)
     per_stratum = np.bincount(rows, weights=w, minlength=m * S).reshape(m, S)
     sums = per_stratum.sum(axis=1, keepdims=True)
-    weights = np.asarray(dynamics.stratum_transitions.sum(axis=1)).reshape(m, S)
+    lamps = getattr(dynamics, "n_lamps", 0)   # lamp masses are not probabilities (lamps.py)
+    passive_mass = (dynamics.stratum_transitions[:, :dynamics.n_columns - lamps] if lamps
+                    else dynamics.stratum_transitions)
+    weights = np.asarray(passive_mass.sum(axis=1)).reshape(m, S)
     passive = weights / np.maximum(weights.sum(axis=1, keepdims=True), 1e-300)
     u = np.where(sums > 0, per_stratum / np.where(sums > 0, sums, 1.0), passive)
     return u.astype(np.float64)

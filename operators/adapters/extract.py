@@ -3,17 +3,19 @@
 :func:`extract_scene` reads every visible mesh of the view layer from the evaluated depsgraph
 (modifiers and geometry nodes applied, instances included, world space), its triangles, the
 active render UV map, and one diffuse albedo / emitted radiance per triangle from the material of
-its polygon, plus Blender area lights (as one-sided emitting quads) and the world background.
+its polygon, plus Blender's lights (point, spot, sun and area lights as lamps) and the world background.
 Conventions follow Cycles as measured in docs/cycles_conventions.md:
 
 * Emission shader: radiance = Color x Strength, two-sided. Principled BSDF: Base Color is the
   albedo, Emission Color x Emission Strength the radiance.
 * A material whose node tree has no connected Surface renders black: albedo 0. A polygon without
   material uses Cycles' default surface, a Diffuse BSDF of 0.8 grey.
-* AREA light of power P (W) x 2^exposure, colour c (x its temperature colour), size a x b and
-  object scale (sx, sy): radiance L = P c / (π a sx b sy) (``normalize`` on, the default;
-  P c / π when off), emitted towards the light's -Z only. Disk / ellipse: a rectangle of the
-  same area, with a warning. Cycles' lights do not occlude; the quad here does.
+* Lights (POINT, SPOT, SUN, AREA): :class:`~lmdp_addon.lamps.Lamps` (their conventions are in
+  ``lamps.py``) with power P (W; W/m² for a sun) x 2^exposure x colour c (x its temperature
+  colour, x the Emission node's Color x Strength when it uses nodes); an AREA light of size
+  a x b and object scale (sx, sy) has radiance L = P c / (π a sx b sy) (``normalize`` on, the
+  default; P c / π when off; x π/4 in the area of a disk / ellipse), emitted towards its -Z.
+  Lamps occlude nothing, as Cycles' lights.
 * World: Background Color x Strength of the shader connected to the World Output, an
   Environment Texture (HDRI) as an environment map, other world trees rendered into one
   (``world_capture``).
@@ -34,6 +36,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from ...lmdp_addon.lamps import AREA, POINT, SPOT, SUN, Lamps
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
 from .materials import NODE_MULTIPLY, slot_materials
@@ -319,38 +322,121 @@ def _corner_normals(mesh, matrix, loops):
     return world[loops].astype(np.float32)
 
 
-def _area_light_quad(name, matrix, light, warnings):
-    """Corners (4, 3) facing the light's -Z and radiance (3,) of an AREA light, as Cycles sees it."""
-    m = np.asarray(matrix, dtype=np.float64)
-    axis_u, axis_v, centre = m[:3, 0], m[:3, 1], m[:3, 3]
-    size_u = light.size
-    size_v = light.size_y if light.shape in ('RECTANGLE', 'ELLIPSE') else light.size
-    area = np.linalg.norm(axis_u) * size_u * np.linalg.norm(axis_v) * size_v
-    half_u, half_v = size_u / 2.0, size_v / 2.0
-    if light.shape in ('DISK', 'ELLIPSE'):
-        area *= np.pi / 4.0
-        half_u *= np.sqrt(np.pi / 4.0)
-        half_v *= np.sqrt(np.pi / 4.0)
-        warnings.append(f"Light '{name}': {light.shape.lower()} area light modelled as a "
-                        "rectangle of the same area")
+def _light_strength(name, light, warnings):
+    """Cycles' light strength (3,): colour (x its temperature colour) x power x 2^exposure,
+    times the Emission node's Color x Strength when the light uses nodes (``_light_nodes``)."""
     colour = np.array(light.color[:3], dtype=np.float64)
     if getattr(light, "use_temperature", False):
         colour = colour * np.array(light.temperature_color[:3], dtype=np.float64)
     strength = colour * light.energy * 2.0 ** getattr(light, "exposure", 0.0)
-    if getattr(light, "normalize", True):
-        radiance = strength / (np.pi * area) if area > 0 else np.zeros(3)
-    else:
-        radiance = strength / np.pi
-    if getattr(light, "spread", np.pi) < np.pi - 1e-6:
-        warnings.append(f"Light '{name}': spread {np.degrees(light.spread):.0f}° is not "
-                        "modelled; the light emits like a diffuse (180°) area light")
-    if getattr(light, "use_nodes", False):
-        warnings.append(f"Light '{name}': its shader nodes are ignored (emission colour x "
-                        "power only)")
-    du, dv = axis_u * half_u, axis_v * half_v
-    # (p0, p1, p2, p3) with normal (p1 - p0) x (p3 - p0) = v x u = -Z: facing the light's -Z.
-    corners = np.array([centre - du - dv, centre - du + dv, centre + du + dv, centre + du - dv])
-    return corners, radiance
+    if getattr(light, "use_nodes", False) and light.node_tree is not None:
+        strength = strength * _light_nodes(name, light.node_tree, warnings)
+    return strength
+
+
+def _linked_source(socket):
+    """The node feeding ``socket`` (through reroutes), or None."""
+    links = [link for link in socket.links if not link.is_muted and link.is_valid]
+    while links:
+        node = links[0].from_node
+        if node.type != 'REROUTE':
+            return node
+        links = [link for link in node.inputs[0].links if not link.is_muted and link.is_valid]
+    return None
+
+
+def _blackbody_rgb(temperature):
+    """Blender's blackbody colour (3,) of ``temperature`` K (the colour a light's own
+    temperature takes, read from a temporary light)."""
+    probe = bpy.data.lights.new("LMDP blackbody probe", 'POINT')
+    try:
+        probe.use_temperature = True
+        probe.temperature = float(temperature)
+        return np.array(probe.temperature_color[:3], dtype=np.float64)
+    finally:
+        bpy.data.lights.remove(probe)
+
+
+def _light_nodes(name, tree, warnings):
+    """(3,) factor of a light's node tree: the Emission node's Color x Strength feeding the
+    active Light Output (a Blackbody node into Color is evaluated; other links are warned
+    about and their socket's value used)."""
+    outputs = [n for n in tree.nodes if n.type == 'OUTPUT_LIGHT']
+    output = next((n for n in outputs if n.is_active_output), outputs[0] if outputs else None)
+    if any(n.type == 'TEX_IES' for n in tree.nodes):
+        warnings.append(f"Light '{name}': its IES texture is not modelled; the light emits evenly")
+    node = _linked_source(output.inputs["Surface"]) if output is not None else None
+    if node is None:
+        return np.zeros(3)
+    if node.type != 'EMISSION':
+        warnings.append(f"Light '{name}': shader node '{node.name}' ({node.type.lower()}) is not "
+                        "modelled; the light's colour and power are used as they are")
+        return np.ones(3)
+    strength_socket = node.inputs["Strength"]
+    strength = float(strength_socket.default_value)
+    if _linked_source(strength_socket) is not None:
+        warnings.append(f"Light '{name}': the Emission Strength is driven by a node LMDP cannot "
+                        f"evaluate; using {strength:g}")
+    colour_socket = node.inputs["Color"]
+    colour = np.array(colour_socket.default_value[:3], dtype=np.float64)
+    source = _linked_source(colour_socket)
+    if source is not None and source.type == 'BLACKBODY' and _linked_source(source.inputs[0]) is None:
+        colour = _blackbody_rgb(source.inputs[0].default_value)
+    elif source is not None:
+        warnings.append(f"Light '{name}': the Emission Color is driven by node '{source.name}', which "
+                        "LMDP cannot evaluate; using the socket's colour")
+    return colour * strength
+
+
+def _lamp_record(name, matrix, light, warnings):
+    """The :class:`~lmdp_addon.lamps.Lamps` columns (a dict) of a POINT, SPOT, SUN or AREA light."""
+    m = np.asarray(matrix, dtype=np.float64)
+    axis = -m[:3, 2]
+    record = dict(name=name, kind={'POINT': POINT, 'SPOT': SPOT, 'SUN': SUN, 'AREA': AREA}[light.type],
+                  position=m[:3, 3], axis=axis / max(np.linalg.norm(axis), 1e-300),
+                  strength=_light_strength(name, light, warnings),
+                  normalize=bool(getattr(light, "normalize", True)), cast_shadow=bool(light.use_shadow))
+    if np.any(record["strength"] < 0):
+        warnings.append(f"Light '{name}': negative power or colour is not modelled; those channels emit "
+                        "nothing")
+    if light.type == 'AREA':
+        # Cycles' axes: the light's X and Y scaled by the object (normal: its -Z)
+        size_u = light.size
+        size_v = light.size_y if light.shape in ('RECTANGLE', 'ELLIPSE') else light.size
+        record.update(extent_u=m[:3, 0] * size_u, extent_v=m[:3, 1] * size_v,
+                      ellipse=light.shape in ('DISK', 'ELLIPSE'), spread=float(light.spread))
+        if light.spread < 1e-4:
+            warnings.append(f"Light '{name}': spread 0 (a parallel beam) is not modelled; LMDP uses a "
+                            "spread of 0.006°")
+        return record
+    if light.type == 'SUN':
+        record["angle"] = float(light.angle)
+        return record
+    record["radius"] = float(light.shadow_soft_size)
+    record["sphere"] = not bool(getattr(light, "use_soft_falloff", True))
+    if light.type == 'SPOT':
+        record["spot_size"] = float(light.spot_size)
+        record["spot_blend"] = float(light.spot_blend)
+        scale = np.linalg.norm(m[:3, :3], axis=0)
+        if np.ptp(scale) > 1e-4 * scale.max():
+            warnings.append(f"Light '{name}': a non-uniformly scaled spot's cone is elliptic in Cycles; "
+                            "LMDP keeps it round (apply the scale to the light)")
+        if getattr(light, "use_square", False):
+            warnings.append(f"Light '{name}': the square spot shape only changes the viewport")
+    return record
+
+
+def _lamps(records):
+    """:class:`~lmdp_addon.lamps.Lamps` of the lamp records (``_lamp_record``)."""
+    if not records:
+        return Lamps()
+    columns = {key: [r.get(key, default) for r in records]
+               for key, default in (("kind", POINT), ("position", (0.0, 0.0, 0.0)), ("axis", (0.0, 0.0, -1.0)),
+                                    ("radius", 0.0), ("angle", 0.0), ("sphere", False), ("spot_size", np.pi),
+                                    ("spot_blend", 0.0), ("strength", (0.0, 0.0, 0.0)), ("normalize", True),
+                                    ("cast_shadow", True), ("extent_u", (0.0, 0.0, 0.0)),
+                                    ("extent_v", (0.0, 0.0, 0.0)), ("ellipse", False), ("spread", np.pi))}
+    return Lamps(names=[r["name"] for r in records], **columns)
 
 
 def _is_hidden(obj, view_layer):
@@ -367,6 +453,7 @@ class _SceneBuilder:
         self.parts = []  # (vertices, triangles, albedo, emission, two_sided, uv) per object
         self.normals = []  # (T, 3, 3) corner normals per object (NaN: the face normal)
         self.offset = 0
+        self.lamps = []   # point, spot and sun lights (``_lamp_record``)
 
     def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv,
             uid=-1, fingerprint=None, corner_normals=None):
@@ -417,24 +504,58 @@ class _SceneBuilder:
             warnings=warnings,
             object_uids=np.array(self.uids, dtype=np.int64),
             object_fingerprints=list(self.fingerprints),
+            lamps=_lamps(self.lamps),
         )
 
 
 def _add_light(builder, name, inst, warnings, skipped_lights):
-    """An AREA light as a one-sided emitting quad; other lights are listed in ``skipped_lights``."""
-    light = inst.object.data
-    if light.type != 'AREA':
+    """A POINT, SPOT, SUN or AREA light of the scene as a lamp (:class:`~lmdp_addon.lamps.Lamps`);
+    lights the bake cannot use are named in ``skipped_lights`` or warned about."""
+    obj = inst.object
+    light = obj.data
+    if light.type not in ('AREA', 'POINT', 'SPOT', 'SUN'):
         skipped_lights.append(f"'{name}' ({light.type.lower()})")
         return
-    if light.cycles.is_portal:
+    if light.type == 'AREA' and light.original.cycles.is_portal:
         warnings.append(f"Light '{name}' is a portal: ignored")
         return
-    corners, radiance = _area_light_quad(name, inst.matrix_world, light, warnings)
-    if not np.any(radiance > 0):
+    if not getattr(obj.original, "visible_diffuse", True):
+        warnings.append(f"Light '{name}' is invisible to diffuse rays (Object > Visibility): it lights "
+                        "nothing the bake sees, and is left out")
         return
-    tris = np.array([[0, 1, 2], [0, 2, 3]])
-    builder.add(name, False, corners, tris, np.zeros((2, 3)), np.tile(radiance, (2, 1)),
-                np.zeros(2, dtype=bool), None)
+    _unsupported_light_features(name, obj.original, light, warnings)   # the user's settings
+    record = _lamp_record(name, inst.matrix_world, light, warnings)
+    numbers = [np.asarray(v, dtype=np.float64) for k, v in record.items() if k not in ("name", "kind")]
+    if not all(np.all(np.isfinite(v)) for v in numbers):
+        warnings.append(f"Light '{name}' has a non-finite transform, size or power (Inf or NaN): it is "
+                        "left out; fix its transform or settings")
+        return
+    size = np.linalg.norm(record["extent_u"]) * np.linalg.norm(record["extent_v"]) if light.type == 'AREA' else 1.0
+    if np.any(record["strength"] > 0) and size > 0:   # a light of power or size 0 lights nothing
+        builder.lamps.append(record)
+
+
+def _unsupported_light_features(name, obj, light, warnings):
+    """One warning per light feature that changes a Cycles bake and is not modelled."""
+    linking = getattr(obj, "light_linking", None)
+    if linking is not None and (linking.receiver_collection is not None or linking.blocker_collection is not None):
+        warnings.append(f"Light '{name}': light linking is not modelled; it lights and is shadowed by "
+                        "every object")
+    if getattr(obj, "lightgroup", ""):
+        warnings.append(f"Light '{name}': light group '{obj.lightgroup}' is not modelled; the bake holds "
+                        "every light")
+    bounces = light.original.cycles.max_bounces   # add-on properties: read the user's own
+    if bounces < 1024:
+        warnings.append(f"Light '{name}': its Max Bounces ({bounces}) is not modelled; it lights every "
+                        "bounce of the bake")
+
+
+def _shadow_flag_warning(name, obj, warnings):
+    """A warning for a mesh whose Object > Visibility > Shadow is off: in Cycles it casts no
+    shadows, here it does."""
+    if not getattr(obj.original, "visible_shadow", True):
+        warnings.append(f"Object '{name}': Visibility > Ray Visibility > Shadow off is not modelled; "
+                        "it casts shadows in the bake")
 
 
 def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
@@ -481,7 +602,7 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
 
 
 def extract_scene(context, selected_objects, depsgraph=None):
-    """:class:`CapturedScene` of every visible mesh and area light in ``context``'s view layer.
+    """:class:`CapturedScene` of every visible mesh and light in ``context``'s view layer.
 
     ``selected_objects``: the objects whose meshes carry LMDP states (originals or evaluated,
     matched by object, not by name); every other visible mesh only occludes and reflects. The
@@ -517,6 +638,7 @@ def extract_scene(context, selected_objects, depsgraph=None):
         if obj.type == 'LIGHT':
             _add_light(builder, name, inst, warnings, skipped_lights)
         elif obj.type in GEOMETRY_TYPES:
+            _shadow_flag_warning(name, obj, warnings)
             if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings):
                 captured.add(top.session_uid)
             if not inst.is_instance and mode_holding_mesh(obj.original) == "Sculpt Mode with Dynamic Topology":
@@ -529,7 +651,6 @@ def extract_scene(context, selected_objects, depsgraph=None):
         warnings.append(f"The selected {', '.join(repr(n) for n in empty)} produced no faces (after "
                         "modifiers): they carry no LMDP states")
     if skipped_lights:
-        warnings.append("Only area lights are modelled; skipped " + ", ".join(skipped_lights)
-                        + ": use an area light or an emissive mesh instead")
+        warnings.append("Light types LMDP does not model were skipped: " + ", ".join(skipped_lights))
     world_radiance, environment = reader.world(depsgraph.scene.world)
     return builder.scene_arrays(world_radiance, warnings, environment)

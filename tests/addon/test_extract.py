@@ -349,8 +349,9 @@ def _area_light(name, location, shape='RECTANGLE', size=(0.5, 0.25), power=20.0,
     return obj
 
 
-def test_area_light_becomes_a_one_sided_quad_with_cycles_radiance(fresh_scene, extract, demo, library, lmdp_ext):
-    """Radiance P c / (π A) facing -Z, validated by Cycles' DIRECT bake of a floor under it."""
+def test_area_light_becomes_a_one_sided_lamp_with_cycles_radiance(fresh_scene, extract, demo, library, lmdp_ext):
+    """Radiance P c / (π A) facing -Z (a lamp, not geometry: Cycles' lights occlude nothing),
+    validated by Cycles' DIRECT bake of a floor under it."""
     texels = lmdp_ext.sub("lmdp_addon.bake.texels")
     demo.configure_cycles(bpy.context.scene)
     bpy.ops.mesh.primitive_plane_add(size=1.0)
@@ -359,17 +360,15 @@ def test_area_light_becomes_a_one_sided_quad_with_cycles_radiance(fresh_scene, e
     floor.data.materials.append(add_material("White"))
     light = _area_light("Panel", (0.1, -0.05, 0.8), scale=(1.5, 2.0, 1.0))
     sa = extract.extract_scene(bpy.context, [floor])
-    i = sa.object_names.index("Panel")
-    mask = sa.triangle_object == i
-    assert mask.sum() == 2 and not sa.object_carries_states[i]
-    assert not sa.triangle_emission_two_sided[mask].any()
-    normals, area = sa.triangle_geometry()
-    np.testing.assert_allclose(normals[mask], np.tile([0, 0, -1.0], (2, 1)), atol=1e-6)
+    assert "Panel" not in sa.object_names and sa.lamps.names == ["Panel"]
+    lamps = lmdp_ext.sub("lmdp_addon.lamps")
+    assert sa.lamps.kind.tolist() == [lamps.AREA]
+    np.testing.assert_allclose(sa.lamps.axis[0], [0, 0, -1.0], atol=1e-6)
     a, b = 0.5 * 1.5, 0.25 * 2.0
-    assert area[mask].sum() == pytest.approx(a * b)
+    assert sa.lamps.area[0] == pytest.approx(a * b)
     L = 20.0 * np.array([1.0, 0.5, 0.25]) / (np.pi * a * b)
-    np.testing.assert_allclose(sa.triangle_emission[mask], np.tile(L, (2, 1)), rtol=1e-6)
-    np.testing.assert_allclose(sa.triangle_albedo[mask], 0.0)
+    np.testing.assert_allclose(sa.lamps.emission[0], L, rtol=1e-6)
+    normals, _ = sa.triangle_geometry()
     # Cycles: the floor's DIRECT bake is L F(texel) with the rectangle form factor.
     R = 12
     fm = sa.triangle_object == sa.object_names.index("Floor")
@@ -389,7 +388,7 @@ def test_area_light_becomes_a_one_sided_quad_with_cycles_radiance(fresh_scene, e
     assert np.abs(dark[..., :3]).max() == 0.0
 
 
-def test_light_options_disk_exposure_and_skipped_lights(fresh_scene, extract):
+def test_light_options_disk_exposure_and_point_and_sun_lamps(fresh_scene, extract, lmdp_ext):
     bpy.ops.mesh.primitive_plane_add(size=1.0)
     disk = _area_light("Disk", (0, 0, 1), shape='DISK', size=(0.4, 0.4), power=10.0, colour=(1, 1, 1))
     disk.data.exposure = 1.0
@@ -401,16 +400,25 @@ def test_light_options_disk_exposure_and_skipped_lights(fresh_scene, extract):
         bpy.context.scene.collection.objects.link(obj)
     bpy.context.view_layer.update()
     sa = extract.extract_scene(bpy.context, [])
-    _, area = sa.triangle_geometry()
-    d = sa.triangle_object == sa.object_names.index("Disk")
+    lamps = lmdp_ext.sub("lmdp_addon.lamps")
+    index = {n: i for i, n in enumerate(sa.lamps.names)}
+    assert set(index) == {"Disk", "Raw", "Bulb", "Sunlight"} and sa.object_names == ["Plane"]
     disk_area = np.pi / 4 * 0.4 * 0.4
-    assert area[d].sum() == pytest.approx(disk_area)
-    np.testing.assert_allclose(sa.triangle_emission[d][0], 10.0 * 2.0 / (np.pi * disk_area), rtol=1e-6)
-    r = sa.triangle_object == sa.object_names.index("Raw")
-    np.testing.assert_allclose(sa.triangle_emission[r][0], 3.0 / np.pi, rtol=1e-6)
-    assert "Bulb" not in sa.object_names and "Sunlight" not in sa.object_names
-    assert any("'Bulb' (point)" in w and "'Sunlight' (sun)" in w for w in sa.warnings)
-    assert any("Disk" in w and "same area" in w for w in sa.warnings)
+    d = index["Disk"]
+    assert sa.lamps.ellipse[d] and sa.lamps.area[d] == pytest.approx(disk_area)
+    np.testing.assert_allclose(sa.lamps.emission[d], 10.0 * 2.0 / (np.pi * disk_area), rtol=1e-6)
+    np.testing.assert_allclose(sa.lamps.emission[index["Raw"]], 3.0 / np.pi, rtol=1e-6)
+    # Cycles' conventions: a point light's radiance P / (π 4π r²) (intensity P / 4π at r = 0), a
+    # sun's S / (π sin² θ) over its cone of half-angle θ
+    assert sa.lamps.kind[index["Bulb"]] == lamps.POINT and sa.lamps.kind[index["Sunlight"]] == lamps.SUN
+    bulb = point.data
+    r = bulb.shadow_soft_size
+    np.testing.assert_allclose(sa.lamps.emission[index["Bulb"]],
+                               bulb.energy / (np.pi * (4 * np.pi * r * r if r > 0 else 4.0)), rtol=1e-5)
+    half = sun.data.angle / 2
+    np.testing.assert_allclose(sa.lamps.emission[index["Sunlight"]],
+                               sun.data.energy / (np.pi * np.sin(half) ** 2), rtol=1e-4)
+    assert not any("skipped" in w or "Bulb" in w or "Sunlight" in w for w in sa.warnings), sa.warnings
 
 
 def test_world_background_colour_strength_and_environment_map(fresh_scene, extract):
