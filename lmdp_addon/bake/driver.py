@@ -34,6 +34,7 @@ import numpy as np
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
 from .checks import check_bake, check_texels, object_index, object_texels
+from .content import BakeContent
 from .gather import build_gather
 from .guide import build_guide
 from .results import IMAGE_SUFFIX, BakeResult, ObjectBake
@@ -222,7 +223,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
         if caster is None and guide.same_scene:  # same geometry: the build's BVH serves
             caster = lmdp.dynamics.caster
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
-                            guide_fraction=settings.guide_fraction, caster=caster)
+                            guide_fraction=settings.guide_fraction, caster=caster,
+                            content=BakeContent.from_settings(settings))
     return tracer, guide, info
 
 

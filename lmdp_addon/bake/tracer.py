@@ -26,6 +26,9 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 * ``max_bounces`` = N keeps vertices y_1 .. y_N (NEE at each and the escape of y_N's ray), which
   is what Cycles' ``max_bounces = N`` (with ``diffuse_bounces >= N``) bakes: Cycles' kernel uses
   ``N + 1`` internally and stops shading at the vertex whose incoming bounce count reaches it;
+* ``content`` (:mod:`~lmdp_addon.bake.content`) adds the direct light at the start point x0
+  (NEE at x0 and the MIS-weighted emission / world its first ray finds: Cycles' {'DIRECT',
+  'INDIRECT'}) and / or multiplies each path by x0's diffuse colour (Cycles' 'COLOR');
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
 
@@ -48,6 +51,7 @@ import numpy as np
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
+from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
@@ -89,10 +93,12 @@ class IndirectTracer:
     guide_fraction  α of the mixture
     rr_start        first vertex index at which Russian roulette may end a path
     caster          the :class:`~lmdp_addon.raycast.RayCaster` to trace with (default: a new one)
+    content         :class:`~lmdp_addon.bake.content.BakeContent`: also the direct light at the
+                    start point, and / or times its diffuse colour (default: indirect only)
     """
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
-                 guide_fraction=0.5, rr_start=3, caster=None):
+                 guide_fraction=0.5, rr_start=3, caster=None, content=None):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -108,6 +114,7 @@ class IndirectTracer:
         self.directions = (GuidedDirections(self.guide, self.guide_fraction) if self.guide is not None
                            else CosineDirections())
         self.rr_start = int(rr_start)
+        self.content = content or BakeContent()
         self.caster = caster or RayCaster(scene)
         self.lights = EmitterSampler(scene)
         corners = scene.corners()
@@ -158,6 +165,11 @@ class IndirectTracer:
         beta = np.ones((n, 3), np.float32)
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
+        if self.content.direct:   # ---- direct light at x0: NEE here, MIS hits of ω0 below ----
+            direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift,
+                                                         geometric=gnrm if self.smooth else None)
+            stats.shadow_rays += shadow_rays
+            L += direct
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         bounce = 1
@@ -167,7 +179,7 @@ class IndirectTracer:
             tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
-            if bounce >= 2:
+            if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h)
             if bounce > self.max_bounces:
                 break
@@ -215,7 +227,15 @@ class IndirectTracer:
                 idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
                     np.flatnonzero(keep), idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
             bounce += 1
+        if self.content.multiply_color:
+            times_color(L, self._start_albedo(triangles))
         return L, stats
+
+    def _start_albedo(self, triangles):
+        """The diffuse colour ρ (n, 3) of the start points' triangles (``BakeContent.multiply_color``)."""
+        if triangles is None:
+            raise ValueError("multiply_color needs the start points' triangles")
+        return rows(self.albedo, np.asarray(triangles, dtype=np.int64))
 
     def _start_normals(self, pos, normals, triangles):
         """Shading and geometric normals ``(N, Ng)`` (k, 3) float32 of the start points ``pos``
