@@ -12,8 +12,9 @@
 * :func:`compute_bake` (no bpy; a worker thread in the UI, Esc cancels between objects and work
   units): ``lmdp_addon.bake.driver.bake`` with the plan (its texel checks first, then the bake
   with the texels they rasterised), so nothing is checked or rasterised twice.
-* :func:`apply_bake` (main thread, after success only): the lightmaps into images and files
-  (:mod:`.adapters.lightmaps`), the optional material hook-up (:mod:`.adapters.materials`) and
+* :func:`apply_bake` (main thread, after success only): with ``denoise``, OIDN per UV island
+  (:mod:`.adapters.denoise`, laid out by ``lmdp_addon.bake.islands`` in :func:`compute_bake`); the
+  lightmaps into images and files (:mod:`.adapters.lightmaps`), the optional material hook-up (:mod:`.adapters.materials`) and
   the session's ``bake`` stage.
 
 The path length comes from the scene's Cycles Light Paths or ``scene.lmdp.max_bounces``
@@ -32,7 +33,9 @@ import bpy
 
 from ..lmdp_addon.bake import driver
 from ..lmdp_addon.bake.checks import check_bake, check_texels
+from ..lmdp_addon.bake.islands import denoise_input
 from ..lmdp_addon.errors import SceneError
+from .adapters.denoise import denoise_bake
 from .adapters.extract import extract_scene
 from .adapters.lightmaps import prepare_output_folder, write_lightmaps
 from .adapters.materials import check_hook_up, hook_up as hook_up_materials
@@ -63,6 +66,7 @@ class BakedLightmaps:
     result: object                     #: the engine's BakeResult
     keys: dict                         #: object name -> key (``name_full``)
     light_paths: object = None         #: the LightPaths of the bake
+    denoise: dict = field(default_factory=dict)  #: object name -> islands.DenoiseInput (denoise on)
 
 
 def check_light_paths(light_paths):
@@ -147,7 +151,11 @@ def compute_bake(inputs, settings, progress):
     result.warnings = list(inputs.warnings) + list(inputs.plan.texel_warnings)
     if inputs.light_paths is not None:
         result.light_paths = inputs.light_paths.as_dict()
-    return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths)
+    prepared = {}
+    if settings.denoise:     # the islands laid out for the denoiser here, off the main thread
+        prepared = {ob.name: denoise_input(inputs.scene, ob, settings.multiply_color) for ob in result.objects}
+    return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths,
+                          denoise={k: v for k, v in prepared.items() if v is not None})
 
 
 def _objects_by_key(keys):
@@ -170,7 +178,10 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     objects = _objects_by_key(baked.keys)
     present = [obj for obj in objects.values() if obj is not None]
     check_hook_up(present, hook_up)
-    images = write_lightmaps(result, output_dir, warnings, baked.keys)
+    if baked.denoise:
+        denoise_bake(result, baked.denoise, settings.bake_margin)
+    images = write_lightmaps(result, output_dir, warnings, baked.keys, output_format=settings.output_format,
+                             output_8bit=settings.output_8bit, view_scene=context.scene)
     gone = [name for name, obj in objects.items() if obj is None]
     if gone and hook_up != "NONE":
         warnings.append(f"{', '.join(gone)} no longer in the file: lightmap written, not hooked up")

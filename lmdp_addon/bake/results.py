@@ -9,6 +9,8 @@ from .tracer import TraceStats
 
 #: Suffix of the images the add-on writes.
 IMAGE_SUFFIX = "_lmdp_indirect"
+#: Added to the image (and file) name of the raw lightmap a denoised bake keeps.
+RAW_SUFFIX = "_raw"
 
 
 @dataclass
@@ -24,6 +26,8 @@ class ObjectBake:
     samples         paths per texel; batches: independent batches they were split into
     stats           :class:`~lmdp_addon.bake.tracer.TraceStats`
     seconds         wall time of this object's bake
+    raw_image       (R, R, 4) the path-traced image when ``image`` was denoised, else None
+    denoised_value  (n, 3) the denoised texels when ``image`` was denoised, else None
     """
 
     name: str
@@ -36,10 +40,17 @@ class ObjectBake:
     batches: int
     stats: TraceStats
     seconds: float
+    raw_image: np.ndarray = None
+    denoised_value: np.ndarray = None
 
     @property
     def image_name(self):
         return self.name + IMAGE_SUFFIX
+
+    @property
+    def raw_image_name(self):
+        """The image that keeps the path-traced lightmap of a denoised bake."""
+        return self.image_name + RAW_SUFFIX
 
     @property
     def n_texels(self):
@@ -98,6 +109,7 @@ class BakeResult:
                 "trace": o.stats.as_dict(),
                 "mean": [float(x) for x in o.value.mean(axis=0)] if o.n_texels else [0.0, 0.0, 0.0],
                 "mean_relative_standard_error": _relative_error(o),
+                "denoised": o.raw_image is not None,
                 "seconds": {**{k: v for k, v in self.seconds.items() if k != "bake"}, "bake": o.seconds},
             }
         return {
