@@ -180,6 +180,9 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     check_hook_up(present, hook_up)
     if baked.denoise:
         denoise_bake(result, baked.denoise, settings.bake_margin)
+        warnings.append("Denoised lightmaps blur contact shadows over a few texels (where light falls off "
+                        "sharply, e.g. around an object's feet); the path-traced lightmap is kept as the image "
+                        "'<lightmap>_raw'")
     images = write_lightmaps(result, output_dir, warnings, baked.keys, output_format=settings.output_format,
                              output_8bit=settings.output_8bit, view_scene=context.scene)
     gone = [name for name, obj in objects.items() if obj is None]

@@ -32,16 +32,19 @@ DEFAULT_PAD = 8
 DEFAULT_GAP = 8
 
 
-def uv_islands(triangle_uv, texel_triangle):
+def uv_islands(triangle_uv, triangle_corners, texel_triangle):
     """``(island of each texel (n,) int64, number of islands)``: the connected components of the
-    triangles ``triangle_uv (T, 3, 2)`` (two triangles are connected when a corner of one has the
-    UV of a corner of the other, to 1e-6), read at the texels' triangles ``texel_triangle (n,)``
-    (local indices)."""
+    triangles with UVs ``triangle_uv (T, 3, 2)`` and corners ``triangle_corners (T, 3, 3)``
+    (two triangles are connected when they share a corner with the same position and the same
+    UV, both to 1e-6: a UV seam or two meshes whose UVs touch are separate islands), read at the
+    texels' triangles ``texel_triangle (n,)`` (local indices)."""
     uv = np.asarray(triangle_uv, dtype=np.float64).reshape(-1, 2)
     T = len(uv) // 3
     if T == 0:
         return np.zeros(len(texel_triangle), np.int64), 0
-    keys = np.round(uv * 1e6).astype(np.int64)
+    xyz = np.asarray(triangle_corners, dtype=np.float64).reshape(-1, 3)
+    scale = 1e6 / max(float(np.abs(xyz).max()), 1e-30)
+    keys = np.concatenate([np.round(uv * 1e6), np.round(xyz * scale)], axis=1).astype(np.int64)
     _, vertex = np.unique(keys, axis=0, return_inverse=True)
     vertex = vertex.reshape(-1)
     tri = np.repeat(np.arange(T), 3)
@@ -139,36 +142,67 @@ def unpack_islands(layout, canvas):
 @dataclass
 class DenoiseInput:
     """One object's lightmap laid out for the denoiser: ``color``, ``albedo``, ``normal`` (H, W, 3)
-    float32 canvases of :class:`IslandLayout` ``layout``."""
+    float32 canvases of :class:`IslandLayout` ``layout``; ``modulation`` (n, 3) the diffuse
+    colour the texels' values were divided by (the denoised values are multiplied back), or
+    None."""
 
     layout: IslandLayout
     color: np.ndarray
     albedo: np.ndarray
     normal: np.ndarray
+    modulation: np.ndarray = None
 
 
 def denoise_input(scene, ob, multiply_color=False, pad=DEFAULT_PAD, gap=DEFAULT_GAP):
     """:class:`DenoiseInput` of the baked object ``ob`` (``results.ObjectBake``) of ``scene``
-    (``SceneArrays``): its texel values, as guides the texels' shading normals and, for a
-    lightmap times the diffuse colour, their diffuse colour (else white: the light itself does
-    not follow the surface's colour). None when the object has no texels."""
+    (``SceneArrays``): its texel values with the texels' diffuse colour ρ and normals as guides.
+    A lightmap times the colour (``multiply_color``) is denoised *demodulated*: the light
+    ``value / ρ`` is filtered and multiplied by ρ again, so the colour's edges stay exact (the
+    denoiser only smooths the light). None when the object has no texels."""
     ts = ob.texels
     if len(ts) == 0:
         return None
     tris = np.asarray(ob.triangles)[ts.triangle]
-    island, n_islands = uv_islands(scene.triangle_uv[ob.triangles], ts.triangle)
+    island, n_islands = uv_islands(scene.triangle_uv[ob.triangles], scene.corners()[ob.triangles], ts.triangle)
     layout = pack_islands(ts.row, ts.col, island, n_islands, pad=pad, gap=gap)
-    albedo = (np.clip(scene.triangle_albedo[tris], 0.0, 1.0) if multiply_color
-              else np.ones((len(ts), 3), np.float32))
-    return DenoiseInput(layout=layout, color=canvas_of(layout, ob.value), albedo=canvas_of(layout, albedo),
-                        normal=canvas_of(layout, ts.normal))
+    albedo = np.clip(scene.triangle_albedo[tris], 0.0, 1.0).astype(np.float32)
+    value = np.asarray(ob.value, dtype=np.float32)
+    modulation = None
+    if multiply_color:
+        modulation = albedo
+        value = np.divide(value, albedo, out=np.zeros_like(value), where=albedo > 0)
+    return DenoiseInput(layout=layout, color=canvas_of(layout, value), albedo=canvas_of(layout, albedo),
+                        normal=canvas_of(layout, ts.normal), modulation=modulation)
 
 
-def denoised_image(ob, layout, canvas, margin):
-    """``(values (n, 3), image (R, R, 4))``: the denoised ``canvas`` (H, W, >=3) read back at the
-    texels of ``ob`` and its margin re-filled (``texels.dilate``, Cycles' EXTEND)."""
+def keep_island_light(denoised, raw, island):
+    """``denoised (n, 3)`` with each island's sum per channel scaled to that of ``raw (n, 3)``.
+
+    The raw island sum is an unbiased estimate of the island's light; the denoiser is not
+    energy-preserving (it treats the rare bright paths of a small or distant light as outliers
+    and removes part of their light), so the scale takes its overall bias out and leaves its
+    local smoothing."""
+    island = np.asarray(island, dtype=np.int64)
+    k = int(island.max()) + 1 if len(island) else 0
+    out = np.array(denoised, dtype=np.float32, copy=True)
+    for c in range(out.shape[1]):
+        den = np.bincount(island, weights=out[:, c].astype(np.float64), minlength=k)
+        ref = np.bincount(island, weights=np.asarray(raw)[:, c].astype(np.float64), minlength=k)
+        scale = np.divide(ref, den, out=np.ones(k), where=den > 0)
+        out[:, c] *= scale[island].astype(np.float32)
+    return out
+
+
+def denoised_image(ob, prepared, canvas, margin):
+    """``(values (n, 3), image (R, R, 4))``: the denoised ``canvas`` (H, W, >=3) of ``prepared``
+    (:class:`DenoiseInput`) read back at the texels of ``ob`` (times the modulation, if any),
+    each island scaled per channel to the raw island's total light (:func:`keep_island_light`),
+    and the margin re-filled (``texels.dilate``, Cycles' EXTEND)."""
     ts = ob.texels
-    values = unpack_islands(layout, np.asarray(canvas)[..., :3]).astype(np.float32)
+    values = unpack_islands(prepared.layout, np.asarray(canvas)[..., :3]).astype(np.float32)
+    if prepared.modulation is not None:
+        values *= prepared.modulation
+    values = keep_island_light(values, ob.value, prepared.layout.island)
     R = ts.resolution
     image = np.zeros((R, R, 4), np.float32)
     rgb, filled = dilate(ts.to_image(values), ts.covered_mask(), int(margin), return_mask=True)

@@ -102,6 +102,6 @@ def denoise_bake(result, inputs, margin):
         if prepared is None:
             continue
         canvas = denoise_canvas(prepared.color, prepared.albedo, prepared.normal)
-        values, image = denoised_image(ob, prepared.layout, canvas, margin)
+        values, image = denoised_image(ob, prepared, canvas, margin)
         ob.raw_image, ob.image, ob.denoised_value = ob.image, image, values
     return result

@@ -16,14 +16,19 @@ import numpy as np
 import pytest
 
 from helpers import add_material, select
-from test_bake_vs_cycles import BOUNCES, CACHE, K, assert_means_agree, build, compare, demo, lmdp_bake  # noqa: F401
+from test_bake_vs_cycles import BOUNCES, CACHE, K, assert_means_agree, build, compare, lmdp_bake
 
 RESOLUTION = 16
 CYCLES_SAMPLES = 2048
 SAMPLES = 1024
 
 
-def reference(lmdp_ext, demo, name, pass_filter, resolution=RESOLUTION, samples=CYCLES_SAMPLES, seeds=(1, 2)):  # noqa: F811
+@pytest.fixture
+def demo(lmdp_ext):
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
+
+
+def reference(lmdp_ext, demo, name, pass_filter, resolution=RESOLUTION, samples=CYCLES_SAMPLES, seeds=(1, 2)):
     """Cycles' DIFFUSE bakes of ``name`` with ``pass_filter`` and ``seeds``, cached; (2, R, R, 3)."""
     extract = lmdp_ext.sub("operators.adapters.extract")
     checks = lmdp_ext.sub("lmdp_addon.bake.checks")
@@ -77,7 +82,7 @@ def agree(ob, refs, label):
     return ours, cyc
 
 
-def test_direct_indirect_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_direct_indirect_matches_cycles(fresh_scene, lmdp_ext, demo):
     """The Cornell floor, direct + indirect: Cycles' {'DIRECT', 'INDIRECT'}. The direct part is
     most of it (the indirect-only bake is far below), so a bake without the direct term fails."""
     build("CORNELL_BOX", lmdp_ext)
@@ -92,7 +97,7 @@ def test_direct_indirect_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F
     ("DIRECT_INDIRECT", ("DIRECT", "INDIRECT", "COLOR")),
     ("INDIRECT", ("INDIRECT", "COLOR")),
 ], ids=["direct_indirect_color", "indirect_color"])
-def test_times_color_matches_cycles_on_a_checker(fresh_scene, lmdp_ext, demo, content, pass_filter):  # noqa: F811
+def test_times_color_matches_cycles_on_a_checker(fresh_scene, lmdp_ext, demo, content, pass_filter):
     """The checker floor times its diffuse colour: Cycles' pass_filter with 'COLOR', texel for
     texel; on the blue cells the blue-to-red ratio is that of the white cells times the albedos'
     5.3 (without the colour, the same)."""
