@@ -21,6 +21,7 @@ import json
 import bpy
 
 from ...lmdp_addon.errors import SceneError
+from .gltf_lightmap import hook_gltf, unhook_gltf
 
 #: Custom property of preview materials, and of objects whose slots show one (JSON of the slots).
 PREVIEW_TAG = "lmdp_preview_material"
@@ -37,6 +38,10 @@ HOOK_UP_ITEMS = (
     ("PREVIEW", "Preview Material",
      "Show the lightmap on the object through an emission material linked to the object's "
      "material slots (the mesh's materials are kept; undo with Remove Bake Hook-up)"),
+    ("GLTF", "glTF Occlusion",
+     "Wire the lightmap into the glTF exporter's Occlusion (a 'glTF Material Output' group) of the "
+     "object's own materials, on the baked UV map: exported as occlusionTexture (red channel, "
+     "clipped at 1); Cycles and the bake do not see it (undo with Remove Bake Hook-up)"),
 )
 
 
@@ -70,12 +75,13 @@ def check_hook_up(objects, mode):
                 raise SceneError(f"The mesh of '{obj.name}' is {_origin(obj.data)} and has no "
                                  "material slot for the Preview hook-up: make the mesh local or bake "
                                  "with Hook Up: None")
-        elif mode == "MULTIPLY":
+        elif mode in ("MULTIPLY", "GLTF"):
             users = users if users is not None else material_users()
-            for mat in _multiply_targets(obj, [], users)[0]:
+            edited = _multiply_targets(obj, [], users)[0] if mode == "MULTIPLY" else _own_materials(obj, [], users)
+            for mat in edited:
                 if not is_local(mat):
                     raise SceneError(
-                        f"Material '{mat.name}' of '{obj.name}' is {_origin(mat)}: the Multiply "
+                        f"Material '{mat.name}' of '{obj.name}' is {_origin(mat)}: the {mode.title()} "
                         "hook-up would edit library data, which Blender does not keep. Make the "
                         "material local (Object > Relations > Make Local > Selected Objects, Data "
                         "and Materials) or bake with Hook Up: Preview or None")
@@ -85,13 +91,29 @@ def hook_up(targets, mode):
     """Show each lightmap of ``targets`` ([(object, image)]) in its object's materials the
     ``mode`` way (:data:`HOOK_UP_ITEMS`); returns the warnings. Run :func:`check_hook_up` first."""
     warnings = []
-    users = material_users() if mode == "MULTIPLY" else None
+    users = material_users() if mode in ("MULTIPLY", "GLTF") else None
     for obj, image in targets:
         if mode == "MULTIPLY":
             warnings += hook_multiply(obj, image, users)
         elif mode == "PREVIEW":
             hook_preview(obj, image)
+        elif mode == "GLTF":
+            hook_gltf(obj, image, _own_materials(obj, warnings, users), warnings)
     return warnings
+
+
+def _own_materials(obj, warnings, users):
+    """The materials ``obj`` renders with that no other object uses (``users``:
+    :func:`material_users`); appends a warning for each shared one."""
+    own = []
+    for mat in render_materials(obj):
+        others = [name for name in users.get(mat, ()) if name != obj.name_full]
+        if others:
+            warnings.append(f"Material '{mat.name}' is shared with {', '.join(others[:3])}: not hooked "
+                            "up (a lightmap belongs to one object)")
+        elif mat.node_tree is not None:
+            own.append(mat)
+    return own
 
 
 # ---- What an object renders with ----------------------------------------------------------------------
@@ -371,4 +393,5 @@ def remove_hook_up(obj):
         if PREVIEW_SAVED in obj:
             left.append(obj.name_full)
     removed, linked = unhook_multiply(obj)
+    removed += unhook_gltf([mat for mat in render_materials(obj) if is_local(mat)])
     return removed, preview, left + linked
