@@ -61,10 +61,11 @@ OUTPUT_FORMAT_ITEMS = (
 OUTPUT_8BIT_ITEMS = (
     ("NONE", "None", "No 8-bit copy"),
     ("PNG", "PNG (view transform)",
-     "8-bit sRGB PNG through the scene's view transform and exposure (Color Management): what the "
-     "render shows, clipped at white"),
+     "8-bit sRGB PNG '<lightmap>_srgb.png' through the scene's view transform, look and exposure "
+     "(Color Management): what a render shows, clipped at white"),
     ("RGBM", "RGBM PNG",
-     "8-bit RGBM PNG: rgb = M x a x 6, M = 6 (linear values up to 6; decode rgb x a x 6)"),
+     "8-bit RGBM PNG '<lightmap>_rgbm.png', linear: value = rgb x a x 7 (values up to 7 are kept; "
+     "three.js RGBMLoader's default range)"),
 )
 DISPLAY_QUANTITY_ITEMS = (
     ("Z", "Desirability z",

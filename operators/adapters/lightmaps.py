@@ -20,7 +20,7 @@ not write stops the bake before any work.
 Formats (``Settings.output_format``): 32-bit float OpenEXR (the default), half float OpenEXR
 (``save_render`` with a scratch scene's file settings), Radiance HDR (RGBE: a shared exponent
 per texel, so a channel keeps 8 bits relative to the texel's brightest one). Optional 8-bit
-copies next to each file (``Settings.output_8bit``): ``<stem>.png``, sRGB through the scene's
+copies next to each file (``Settings.output_8bit``): ``<stem>_srgb.png``, sRGB through the scene's
 view transform, look and exposure (what a render of the same linear values shows; curves are not
 copied), or ``<stem>_rgbm.png`` (``lmdp_addon.bake.encoding``). A denoised bake also keeps the raw
 lightmap: the image ``<image>_raw`` (tagged :data:`RAW_TAG`) and the file ``<stem>_raw<ext>``.
@@ -48,7 +48,7 @@ RAW_TAG = "lmdp_raw_of"
 #: File extension and Blender file format of each ``Settings.output_format``.
 FORMATS = {"EXR_FLOAT": (".exr", 'OPEN_EXR'), "EXR_HALF": (".exr", 'OPEN_EXR'), "HDR": (".hdr", 'HDR')}
 #: What is added to a lightmap file's name (without its extension) for its companions.
-RAW_PART, PNG_PART, RGBM_PART = "_raw", "", "_rgbm"
+RAW_PART, PNG_PART, RGBM_PART = "_raw", "_srgb", "_rgbm"
 STATS_FILE = "bake_stats.json"
 #: Prefix of the temporary files written next to the outputs (hidden, removed in every case).
 TEMP_PREFIX = ".lmdp_"
@@ -198,7 +198,7 @@ def assign_files(objects, key_of, folder, owned, warnings, extension=".exr"):
 def _main_file(name, extension):
     """``name`` is a lightmap file, not one of its companions (raw, PNG, RGBM)."""
     stem = name[:-len(extension)]
-    return not (stem.endswith(RAW_PART) or stem.endswith(RGBM_PART))
+    return not (stem.endswith(RAW_PART) or stem.endswith(RGBM_PART) or stem.endswith(PNG_PART))
 
 
 def companion_files(folder, main, owned, extension, parts, warnings):
@@ -428,7 +428,7 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
     written.
 
     ``output_format`` (:data:`FORMATS`): the file each image is loaded from. ``output_8bit``:
-    'PNG' also writes ``<stem>.png`` through ``view_scene``'s view transform (the scene's Color
+    'PNG' also writes ``<stem>_srgb.png`` through ``view_scene``'s view transform (the scene's Color
     Management), 'RGBM' ``<stem>_rgbm.png`` (``lmdp_addon.bake.encoding``, range
     ``RGBM_RANGE``). A denoised object's raw lightmap becomes the image ``<image>_raw`` and, with
     a folder, the file ``<stem>_raw<ext>``."""
@@ -482,6 +482,10 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
             raw = companions.get(ob.name, {}).get(RAW_PART + extension)
             _swap_in(key_of(ob), ob.raw_image_name, ob.resolution, ob.raw_image,
                      os.path.join(output_dir, raw) if raw else None, warnings, tag=RAW_TAG)
+        else:   # not denoised: a raw image of an earlier bake would be stale
+            stale = own_image(key_of(ob), ob.raw_image_name, RAW_TAG)
+            if stale is not None and not stale.users - int(stale.use_fake_user):
+                bpy.data.images.remove(stale)
     return images
 
 

@@ -96,12 +96,12 @@ def test_png_goes_through_the_view_transform(baked_floor, lmdp_ext, tmp_path):
     view = bpy.context.scene.view_settings
     view.view_transform, view.look, view.exposure, view.gamma = 'Standard', 'None', 1.0, 1.0
     ob = bake(lmdp_ext, output_8bit='PNG')
-    back = read(tmp_path / "Floor_lmdp_indirect.png")[..., :3]
+    back = read(tmp_path / "Floor_lmdp_indirect_srgb.png")[..., :3]
     v = np.clip(ob.image[..., :3].astype(np.float64) * 2.0, 0.0, 1.0)
     srgb = np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
     assert np.abs(back - srgb).max() <= 1.5 / 255
     assert (tmp_path / "Floor_lmdp_indirect.exr").exists()
-    assert stats(tmp_path)["objects"]["Floor"]["png_file"] == "Floor_lmdp_indirect.png"
+    assert stats(tmp_path)["objects"]["Floor"]["png_file"] == "Floor_lmdp_indirect_srgb.png"
 
 
 def test_rgbm_png_round_trip(baked_floor, lmdp_ext, tmp_path):
@@ -125,7 +125,7 @@ def test_rgbm_png_round_trip(baked_floor, lmdp_ext, tmp_path):
 
 
 def test_a_users_file_with_a_companion_name_is_left_alone(baked_floor, lmdp_ext, tmp_path):
-    mine = tmp_path / "Floor_lmdp_indirect.png"
+    mine = tmp_path / "Floor_lmdp_indirect_srgb.png"
     mine.write_bytes(b"not a lightmap")
     bake(lmdp_ext, output_8bit='PNG')
     assert mine.read_bytes() == b"not a lightmap"
@@ -133,5 +133,22 @@ def test_a_users_file_with_a_companion_name_is_left_alone(baked_floor, lmdp_ext,
     assert "png_file" not in stats(tmp_path)["objects"]["Floor"]
     # a second bake reuses its own files, no '.001'
     bake(lmdp_ext, output_8bit='RGBM')
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["Floor_lmdp_indirect.exr", "Floor_lmdp_indirect.png",
-                                                          "Floor_lmdp_indirect_rgbm.png", "bake_stats.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([
+        "Floor_lmdp_indirect.exr", "Floor_lmdp_indirect_srgb.png", "Floor_lmdp_indirect_rgbm.png", "bake_stats.json"])
+
+
+def test_a_denoised_bake_keeps_the_raw_lightmap_as_image_and_file(baked_floor, lmdp_ext, tmp_path):
+    ob = bake(lmdp_ext, denoise=True, output_format='EXR_HALF')
+    main, raw = tmp_path / "Floor_lmdp_indirect.exr", tmp_path / "Floor_lmdp_indirect_raw.exr"
+    np.testing.assert_array_equal(read(main), ob.image.astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(read(raw), ob.raw_image.astype(np.float16).astype(np.float32))
+    assert np.abs(ob.image - ob.raw_image).max() > 0
+    image = bpy.data.images[ob.raw_image_name]
+    assert image["lmdp_raw_of"] == "Floor" and bpy.path.abspath(image.filepath_raw) == str(raw)
+    assert stats(tmp_path)["objects"]["Floor"]["raw_file"] == raw.name
+    assert stats(tmp_path)["objects"]["Floor"]["denoised"] is True
+    # denoise off again: the raw file stays LMDP's (listed), the main file is the path tracer's
+    ob = bake(lmdp_ext, denoise=False, output_format='EXR_FLOAT')
+    np.testing.assert_array_equal(read(main), ob.image)
+    assert raw.name in stats(tmp_path)["files"] and raw.exists()
+    assert ob.raw_image_name not in bpy.data.images     # no stale raw image in the file
