@@ -36,10 +36,11 @@ def _scratch_image(name, canvas):
     return image
 
 
-def denoise_canvas(color, albedo=None, normal=None):
+def denoise_canvas(color, albedo=None, normal=None, threads=None):
     """The (H, W, 3) float32 canvas ``color`` denoised by OIDN (the compositor's Denoise node),
-    guided by ``albedo`` and ``normal`` (H, W, 3) when given. Raises ``SceneError`` if Blender
-    cannot run it."""
+    guided by ``albedo`` and ``normal`` (H, W, 3) when given; ``threads``: the compositor's
+    thread count (None: Blender's automatic choice). Raises ``SceneError`` if Blender cannot run
+    it."""
     color = np.asarray(color, dtype=np.float32)
     H, W = color.shape[:2]
     made_images, scene, tree, folder = [], None, None, tempfile.mkdtemp(prefix="lmdp_denoise_")
@@ -67,6 +68,8 @@ def denoise_canvas(color, albedo=None, normal=None):
         render.image_settings.color_depth = '32'
         render.image_settings.color_mode = 'RGB'
         render.use_compositing = True
+        if threads:
+            render.threads_mode, render.threads = 'FIXED', int(threads)
         path = os.path.join(folder, "denoised.exr")
         render.filepath = path
         with bpy.context.temp_override(scene=scene):
