@@ -137,3 +137,15 @@ def test_a_bright_island_does_not_bleed_into_the_dark_one_next_to_it(cornell, lm
           f"max {whole[dark_edge].max():.2e}")
     assert whole[dark_edge].max() > 1e-3 * level     # what denoising across islands does
     assert np.abs(ob.denoised_value[~bright]).max() <= 1e-5 * level
+
+
+def test_denoising_does_not_depend_on_the_thread_count(fresh_scene, lmdp_ext):
+    denoise = lmdp_ext.sub("operators.adapters.denoise")
+    rng = np.random.default_rng(0)
+    color = rng.gamma(1.0, 0.3, (70, 60, 3)).astype(np.float32)
+    albedo = np.full_like(color, 0.7)
+    normal = np.zeros_like(color)
+    normal[..., 2] = 1.0
+    one = denoise.denoise_canvas(color, albedo, normal, threads=1)
+    np.testing.assert_array_equal(denoise.denoise_canvas(color, albedo, normal, threads=2), one)
+    assert np.abs(one - color).mean() > 0.05 * color.mean()     # it did denoise

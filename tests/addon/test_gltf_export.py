@@ -21,12 +21,16 @@ from helpers import select
 
 
 def principled(obj, color=(0.8, 0.5, 0.2)):
+    """A Principled BSDF material of ``color`` with no specular layer (a diffuse surface)."""
     mat = bpy.data.materials.new(obj.name + " Principled")
     tree = mat.node_tree
     tree.nodes.clear()
     out = tree.nodes.new("ShaderNodeOutputMaterial")
     bsdf = tree.nodes.new("ShaderNodeBsdfPrincipled")
     bsdf.inputs["Base Color"].default_value = (*color, 1)
+    bsdf.inputs["Metallic"].default_value = 0.0
+    bsdf.inputs["Roughness"].default_value = 1.0
+    bsdf.inputs["Specular IOR Level"].default_value = 0.0
     tree.links.new(bsdf.outputs[0], out.inputs["Surface"])
     obj.data.materials.clear()
     obj.data.materials.append(mat)
@@ -110,3 +114,43 @@ def test_what_the_exporter_keeps_of_multiply_and_preview(room, lmdp_ext, tmp_pat
     wall_image = lmdp_ext.sub("operators.session").session_for(room).require("bake").object("BackWall").image
     png = texture_pixels(gltf, folder, preview["emissiveTexture"]["index"])[..., :3]
     assert np.abs(png - np.clip(wall_image[..., :3], 0, 1)).max() <= 0.5 / 255 + 1e-6   # linear bytes
+
+
+def test_a_room_imported_from_gltf_bakes_like_cycles_and_exports_its_lightmap(fresh_scene, lmdp_ext, tmp_path):
+    """As a new user: the Cornell box (its walls as diffuse Principled BSDFs: the exporter drops
+    a Diffuse BSDF, and glTF's default is then white metal) exported to .glb, a fresh file, the
+    .glb imported with Blender's importer (its materials and emissive light, nothing of ours), the
+    floor baked direct + indirect times colour, denoised, hooked up for glTF: the raw texels match
+    Cycles' {'DIRECT', 'INDIRECT', 'COLOR'} bake within 2 % and 5 s.e., and the re-exported floor
+    carries the lightmap as its occlusion texture."""
+    from test_bake_content import agree, reference
+    assert bpy.ops.lmdp.add_demo_scene(kind='CORNELL_BOX') == {'FINISHED'}
+    for obj in [o for o in bpy.context.scene.objects if o.type == 'MESH' and o.name != "Light"]:
+        principled(obj, tuple(obj.data.materials[0].diffuse_color[:3]))
+    glb = str(tmp_path / "room.glb")
+    assert bpy.ops.export_scene.gltf(filepath=glb, export_format='GLB') == {'FINISHED'}
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    assert bpy.ops.import_scene.gltf(filepath=glb) == {'FINISHED'}
+    scene = bpy.context.scene
+    scene.cycles.sample_clamp_indirect = 0.0
+    floor = bpy.data.objects["Floor"]
+    assert floor.data.materials[0].node_tree.nodes.get("Principled BSDF") is not None
+    s = scene.lmdp
+    s.bake_mode, s.bake_content, s.multiply_color, s.denoise = 'UNGUIDED', 'DIRECT_INDIRECT', True, True
+    s.light_paths, s.bake_margin = 'CUSTOM', 0
+    select([o for o in scene.objects if o.type == 'MESH'], active=floor)
+    demo = lmdp_ext.sub("operators.adapters.demo_scenes")
+    refs = reference(lmdp_ext, demo, "Floor", ("DIRECT", "INDIRECT", "COLOR"))
+    ob = lmdp_bake_selected(lmdp_ext, floor)
+    agree(ob, refs, "imported glTF floor (D+I) x colour")
+    gltf, _ = export(tmp_path, [floor])
+    assert "occlusionTexture" in gltf["materials"][0]
+
+
+def lmdp_bake_selected(lmdp_ext, obj):
+    from test_bake_vs_cycles import BOUNCES
+    s = bpy.context.scene.lmdp
+    s.bake_resolution, s.bake_samples, s.max_bounces, s.seed = 16, 1024, BOUNCES, 11
+    select([obj])
+    assert bpy.ops.lmdp.bake(hook_up='GLTF') == {'FINISHED'}
+    return lmdp_ext.sub("operators.session").session_for(bpy.context.scene).require("bake").object(obj.name)
