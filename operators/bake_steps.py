@@ -33,6 +33,7 @@ import bpy
 
 from ..lmdp_addon.bake import driver
 from ..lmdp_addon.bake.checks import check_bake, check_texels
+from ..lmdp_addon.bake.content import BakeContent
 from ..lmdp_addon.bake.islands import denoise_input
 from ..lmdp_addon.errors import SceneError
 from .adapters.denoise import denoise_bake
@@ -194,7 +195,8 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     rays = sum(ob.stats.total_rays for ob in result.objects)
     bake_seconds = result.seconds.get("bake", 0.0)
     where = f", saved to {output_dir}" if output_dir else ""
-    message = (f"Baked {len(result.objects)} lightmap(s) ({result.mode}, {result.n_texels} texels x "
+    content = BakeContent.from_settings(settings).label() + (", denoised" if baked.denoise else "")
+    message = (f"Baked {len(result.objects)} lightmap(s) ({result.mode}, {content}, {result.n_texels} texels x "
                f"{settings.bake_samples} samples, {rays / 1e6:.2f} M rays) in {bake_seconds:.2f} s{where}")
     if baked.light_paths is not None:
         message += f"; {baked.light_paths.summary()}"
