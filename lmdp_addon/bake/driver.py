@@ -1,5 +1,6 @@
 """The bake: indirect diffuse light of the selected meshes into lightmaps, texel for texel like
-Cycles' ``bake(type='DIFFUSE', pass_filter={'INDIRECT'})``.
+Cycles' ``bake(type='DIFFUSE', pass_filter={'INDIRECT'})`` (or, with ``Settings.bake_content`` /
+``multiply_color``, {'DIRECT', 'INDIRECT'} and 'COLOR': :mod:`~lmdp_addon.bake.content`).
 
 For every baked object: its texels at ``bake_resolution`` (``texels.rasterize_texels``: Cycles'
 mapping of its UV map), ``bake_samples`` paths per texel started at points of the texel's

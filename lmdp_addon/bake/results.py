@@ -20,7 +20,8 @@ class ObjectBake:
     name            object name; the image is ``name + IMAGE_SUFFIX``
     texels          :class:`~lmdp_addon.bake.texels.TexelSet` (covered texels, Cycles' mapping)
     triangles       (T_o,) the scene triangle of each of the object's local triangle indices
-    value           (n, 3) float32 estimate of E_ind/π per covered texel (W / sr m²)
+    value           (n, 3) float32 estimate per covered texel of the bake content (``content``:
+                    E_ind/π, (E_dir + E_ind)/π, either times ρ; W / sr m²), as path traced
     standard_error  (n, 3) float32 standard error of ``value`` from the batch means (NaN for 1 batch)
     image           (R, R, 4) float32 RGBA, margin filled, alpha 1 where filled; row 0 = bottom
     samples         paths per texel; batches: independent batches they were split into
