@@ -449,6 +449,12 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
             parts += {"PNG": [(PNG_PART, ".png")], "RGBM": [(RGBM_PART, ".png")]}.get(output_8bit, [])
             companions[ob.name] = companion_files(output_dir, files[ob.name], owned, extension, parts, warnings)
         stats = _stats_payload(result, files, companions, key_of, owned, output_dir, output_format, output_8bit)
+        if output_8bit == "RGBM":
+            clipped = [ob.name for ob in result.objects if ob.image[..., :3].max(initial=0.0) > RGBM_RANGE]
+            if clipped:
+                warnings.append(f"The RGBM copies of {', '.join(clipped)} clip values above {RGBM_RANGE:g} "
+                                "(the lightmap files keep them)")
+                stats["warnings"].append(warnings[-1])
     finals = {name: os.path.join(output_dir, f) for name, f in files.items()}
     saver, moves = _Saver(view_scene), []
     try:

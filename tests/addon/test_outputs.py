@@ -118,6 +118,7 @@ def test_rgbm_png_round_trip(baked_floor, lmdp_ext, tmp_path):
     print(f"RGBM round trip: max error {np.abs(decoded - rgb).max():.2e}, median relative "
           f"{np.median(rel[rgb.max(axis=-1) > 0.05]):.2e}")
     assert stats(tmp_path)["output"]["rgbm_range"] == encoding.RGBM_RANGE
+    assert ob.image[..., :3].max() < encoding.RGBM_RANGE      # the floor's light: nothing clipped
     big = np.array([[0.0, 0.5, 3.0], [10.0, 1.0, 0.0], [1e-4, 2e-4, 0.0]], np.float32)
     back = encoding.rgbm_decode(encoding.rgbm_encode(big))
     np.testing.assert_allclose(back[0], big[0], atol=(3.0 + 7 / 255) / 510)
@@ -152,3 +153,11 @@ def test_a_denoised_bake_keeps_the_raw_lightmap_as_image_and_file(baked_floor, l
     np.testing.assert_array_equal(read(main), ob.image)
     assert raw.name in stats(tmp_path)["files"] and raw.exists()
     assert ob.raw_image_name not in bpy.data.images     # no stale raw image in the file
+
+
+def test_rgbm_of_a_surface_brighter_than_its_range_warns(baked_floor, lmdp_ext, tmp_path):
+    """The ceiling around the lamp (5 mm above it) is far brighter than 7."""
+    ob = bake(lmdp_ext, name="Ceiling", output_8bit='RGBM')
+    assert ob.image[..., :3].max() > 7
+    warnings = stats(tmp_path)["warnings"]
+    assert any("RGBM copies of Ceiling clip values above 7" in w for w in warnings), warnings
