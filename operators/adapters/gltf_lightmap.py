@@ -13,8 +13,16 @@ own second UV map), the image as an 8-bit PNG of the linear values, clipped at 1
 A material whose own "glTF Material Output" already has its Occlusion linked is left alone
 (with a warning). :func:`unhook_gltf` removes the three nodes (the group stays: other materials
 or the user may use it).
+
+The ``'GLTF_EMISSIVE'`` hook-up is the Preview one (``materials.hook_preview``: an emission
+material on the object's slots, which the capture sees through) showing :func:`emissive_copy`:
+an 8-bit sRGB image "<lightmap>_gltf" of the lightmap divided by S = its brightest value (at
+least 1), with emission strength S. The exporter writes it as ``emissiveTexture`` over a black
+base colour, with ``KHR_materials_emissive_strength`` S when S > 1: a viewer that decodes the
+texture as sRGB (as glTF says) and multiplies by S shows the baked radiance, to 8 bits.
 """
 import bpy
+import numpy as np
 
 NODE_IMAGE = "LMDP glTF Lightmap"
 NODE_UV = "LMDP glTF UV"
@@ -23,6 +31,43 @@ NODE_OUTPUT = "LMDP glTF Output"
 NODES = (NODE_IMAGE, NODE_UV, NODE_SPLIT, NODE_OUTPUT)
 #: The node group Blender's glTF exporter reads glTF-only material inputs from.
 GLTF_GROUP = "glTF Material Output"
+
+
+#: Custom property of the 8-bit emissive copy of a lightmap (the lightmap image's name).
+EMISSIVE_TAG = "lmdp_gltf_emissive_of"
+EMISSIVE_SUFFIX = "_gltf"
+
+
+def srgb_encode(linear):
+    """The sRGB transfer function (IEC 61966-2-1) of linear values in [0, 1]."""
+    v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
+
+
+def emissive_copy(image):
+    """``(copy, S)``: the add-on's 8-bit sRGB copy of the float lightmap ``image`` (made or
+    refreshed, packed, fake user) holding ``srgb(value / S)``, S = the brightest value, at
+    least 1."""
+    w, h = image.size
+    px = np.empty(w * h * image.channels, np.float32)
+    image.pixels.foreach_get(px)
+    rgb = px.reshape(h, w, image.channels)[..., :3].astype(np.float64)
+    scale = max(1.0, float(rgb.max(initial=0.0)))
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., :3] = np.rint(srgb_encode(rgb / scale) * 255.0) / 255.0
+    copy = next((im for im in bpy.data.images if im.get(EMISSIVE_TAG) == image.name and im.library is None), None)
+    if copy is not None and tuple(copy.size) != (w, h):
+        bpy.data.images.remove(copy)
+        copy = None
+    if copy is None:
+        copy = bpy.data.images.new(image.name + EMISSIVE_SUFFIX, w, h, alpha=True, float_buffer=False)
+        copy[EMISSIVE_TAG] = image.name
+    copy.colorspace_settings.name = 'sRGB'
+    copy.pixels.foreach_set(rgba.reshape(-1))
+    copy.update()
+    copy.pack()
+    copy.use_fake_user = True
+    return copy, scale
 
 
 def baked_uv_map(obj):

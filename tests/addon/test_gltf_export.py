@@ -154,3 +154,46 @@ def lmdp_bake_selected(lmdp_ext, obj):
     select([obj])
     assert bpy.ops.lmdp.bake(hook_up='GLTF') == {'FINISHED'}
     return lmdp_ext.sub("operators.session").session_for(bpy.context.scene).require("bake").object(obj.name)
+
+
+def test_gltf_emissive_hook_up_exports_the_baked_radiance(room, lmdp_ext, tmp_path):
+    """GLTF_EMISSIVE: emissiveTexture over black with KHR_materials_emissive_strength S = the
+    brightest texel; the PNG decoded as sRGB times S is the lightmap to 8 bits (the bytes are the
+    sRGB encoding of value / S, ±1), and the capture of the scene does not change."""
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    gltf_lightmap = lmdp_ext.sub("operators.adapters.gltf_lightmap")
+    wall = bpy.data.objects["BackWall"]
+    before = extract.extract_scene(bpy.context, [wall])
+    select([wall])
+    assert bpy.ops.lmdp.bake(hook_up='GLTF_EMISSIVE') == {'FINISHED'}
+    ob = lmdp_ext.sub("operators.session").session_for(room).require("bake").object("BackWall")
+    after = extract.extract_scene(bpy.context, [wall])
+    np.testing.assert_array_equal(after.triangle_emission, before.triangle_emission)
+    gltf, folder = export(tmp_path, [wall])
+    mat = material(gltf, "BackWall_lmdp_preview")
+    S = float(ob.image[..., :3].max())
+    assert S > 1
+    assert mat["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] == pytest.approx(S, rel=1e-5)
+    assert mat["pbrMetallicRoughness"]["baseColorFactor"][:3] == [0, 0, 0]
+    png = texture_pixels(gltf, folder, mat["emissiveTexture"]["index"])[..., :3]
+    expected = gltf_lightmap.srgb_encode(ob.image[..., :3] / S)
+    assert np.abs(png - expected).max() <= 1.0 / 255 + 1e-6
+    # a second bake refreshes the copy and the strength
+    room.lmdp.seed = 5
+    select([wall])
+    assert bpy.ops.lmdp.bake(hook_up='GLTF_EMISSIVE') == {'FINISHED'}
+    ob = lmdp_ext.sub("operators.session").session_for(room).require("bake").object("BackWall")
+    copy = bpy.data.images["BackWall_lmdp_indirect_gltf"]
+    px = np.empty(copy.size[0] * copy.size[1] * 4, np.float32)
+    copy.pixels.foreach_get(px)
+    S = float(ob.image[..., :3].max())
+    assert np.abs(px.reshape(ob.image.shape)[..., :3] - gltf_lightmap.srgb_encode(ob.image[..., :3] / S)).max() \
+        <= 0.5 / 255 + 1e-6
+    emission = next(n for n in bpy.data.materials["BackWall_lmdp_preview"].node_tree.nodes if n.type == 'EMISSION')
+    assert emission.inputs["Strength"].default_value == pytest.approx(S, rel=1e-6)
+    # a Preview bake afterwards shows the float lightmap at strength 1 again
+    select([wall])
+    assert bpy.ops.lmdp.bake(hook_up='PREVIEW') == {'FINISHED'}
+    nodes = bpy.data.materials["BackWall_lmdp_preview"].node_tree.nodes
+    assert next(n for n in nodes if n.type == 'EMISSION').inputs["Strength"].default_value == 1.0
+    assert nodes["LMDP Lightmap"].image.name == "BackWall_lmdp_indirect"
