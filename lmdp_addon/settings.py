@@ -11,6 +11,15 @@ BAKE_MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
 #: Where the bake's path length comes from (``scene.lmdp.light_paths``): the scene's Cycles
 #: Light Paths, or ``Settings.max_bounces``.
 LIGHT_PATHS = ("SCENE", "CUSTOM")
+#: What a lightmap holds (``Settings.bake_content``): Cycles' DIFFUSE pass with pass_filter
+#: {'INDIRECT'} or {'DIRECT', 'INDIRECT'} (``bake/content.py``).
+BAKE_CONTENTS = ("INDIRECT", "DIRECT_INDIRECT")
+#: The lightmap file of each object (``Settings.output_format``): OpenEXR full / half float,
+#: Radiance HDR (``operators/adapters/lightmaps.py``).
+OUTPUT_FORMATS = ("EXR_FLOAT", "EXR_HALF", "HDR")
+#: An optional 8-bit copy next to it (``Settings.output_8bit``): none, PNG through the scene's
+#: view transform, or RGBM PNG (``bake/encoding.py``).
+OUTPUT_8BIT = ("NONE", "PNG", "RGBM")
 
 
 @dataclass
@@ -38,6 +47,12 @@ class Settings:
     guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
     max_bounces: int = 8              #: path length N of the tracer (Russian roulette after 3);
                                       #: the Blender layer puts LightPaths.path_length here
+    # Lightmap content and output
+    bake_content: str = "INDIRECT"    #: 'INDIRECT' or 'DIRECT_INDIRECT' (BAKE_CONTENTS)
+    multiply_color: bool = False      #: times the texel's diffuse colour (Cycles' COLOR filter)
+    denoise: bool = False             #: OIDN per UV island (Blender layer), the raw image kept
+    output_format: str = "EXR_FLOAT"  #: lightmap files: 'EXR_FLOAT', 'EXR_HALF' or 'HDR'
+    output_8bit: str = "NONE"         #: extra 8-bit file: 'NONE', 'PNG' or 'RGBM'
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)

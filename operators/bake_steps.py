@@ -12,8 +12,9 @@
 * :func:`compute_bake` (no bpy; a worker thread in the UI, Esc cancels between objects and work
   units): ``lmdp_addon.bake.driver.bake`` with the plan (its texel checks first, then the bake
   with the texels they rasterised), so nothing is checked or rasterised twice.
-* :func:`apply_bake` (main thread, after success only): the lightmaps into images and files
-  (:mod:`.adapters.lightmaps`), the optional material hook-up (:mod:`.adapters.materials`) and
+* :func:`apply_bake` (main thread, after success only): with ``denoise``, OIDN per UV island
+  (:mod:`.adapters.denoise`, laid out by ``lmdp_addon.bake.islands`` in :func:`compute_bake`); the
+  lightmaps into images and files (:mod:`.adapters.lightmaps`), the optional material hook-up (:mod:`.adapters.materials`) and
   the session's ``bake`` stage.
 
 The path length comes from the scene's Cycles Light Paths or ``scene.lmdp.max_bounces``
@@ -34,8 +35,11 @@ import numpy as np
 
 from ..lmdp_addon.bake import driver
 from ..lmdp_addon.bake.checks import check_bake, check_texels, scene_fingerprint
+from ..lmdp_addon.bake.content import BakeContent
+from ..lmdp_addon.bake.islands import denoise_input
 from ..lmdp_addon.errors import SceneError
 from ..lmdp_addon.model import pipeline
+from .adapters.denoise import denoise_bake
 from .adapters.extract import extract_scene
 from .adapters.lightmaps import prepare_output_folder, write_lightmaps
 from .adapters.materials import check_hook_up, hook_up as hook_up_materials
@@ -68,6 +72,7 @@ class BakedLightmaps:
     light_paths: object = None         #: the LightPaths of the bake
     solved: object = None              #: the LMDPResult compute_bake solved first (None: reused)
     names: tuple = ()                  #: the meshes that carry its states (every mesh with states)
+    denoise: dict = field(default_factory=dict)  #: object name -> islands.DenoiseInput (denoise on)
 
 
 def check_light_paths(light_paths):
@@ -193,8 +198,11 @@ def compute_bake(inputs, settings, progress):
         result.light_paths = inputs.light_paths.as_dict()
     carriers = () if solved is None else tuple(np.asarray(solved.scene.object_names)[
         np.unique(solved.states.point_object)].tolist())
+    prepared = {}
+    if settings.denoise:     # the islands laid out for the denoiser here, off the main thread
+        prepared = {ob.name: denoise_input(inputs.scene, ob, settings.multiply_color) for ob in result.objects}
     return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths, solved=solved,
-                          names=carriers)
+                          names=carriers, denoise={k: v for k, v in prepared.items() if v is not None})
 
 
 def _objects_by_key(keys):
@@ -219,7 +227,13 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     objects = _objects_by_key(baked.keys)
     present = [obj for obj in objects.values() if obj is not None]
     check_hook_up(present, hook_up)
-    images = write_lightmaps(result, output_dir, warnings, baked.keys)
+    if baked.denoise:
+        denoise_bake(result, baked.denoise, settings.bake_margin)
+        warnings.append("Denoised lightmaps blur contact shadows over a few texels (where light falls off "
+                        "sharply, e.g. around an object's feet); the path-traced lightmap is kept as the image "
+                        "'<lightmap>_raw'")
+    images = write_lightmaps(result, output_dir, warnings, baked.keys, output_format=settings.output_format,
+                             output_8bit=settings.output_8bit, view_scene=context.scene)
     gone = [name for name, obj in objects.items() if obj is None]
     if gone and hook_up != "NONE":
         warnings.append(f"{', '.join(gone)} no longer in the file: lightmap written, not hooked up")
@@ -232,7 +246,8 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     rays = sum(ob.stats.total_rays for ob in result.objects)
     bake_seconds = result.seconds.get("bake", 0.0)
     where = f", saved to {output_dir}" if output_dir else ""
-    message = (f"Baked {len(result.objects)} lightmap(s) ({result.mode}, {result.n_texels} texels x "
+    content = BakeContent.from_settings(settings).label() + (", denoised" if baked.denoise else "")
+    message = (f"Baked {len(result.objects)} lightmap(s) ({result.mode}, {content}, {result.n_texels} texels x "
                f"{settings.bake_samples} samples, {rays / 1e6:.2f} M rays) in {bake_seconds:.2f} s{where}")
     if baked.solved is not None:
         message += (f"; sampled, built and solved the LMDP first ({baked.solved.states.n_points} points, "

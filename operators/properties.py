@@ -49,6 +49,27 @@ LIGHT_PATHS_ITEMS = (
     ("CUSTOM", "Custom",
      "Use Max Bounces below as the path length (bounces), whatever the scene's Cycles Light Paths"),
 )
+BAKE_CONTENT_ITEMS = (
+    ("INDIRECT", "Indirect",
+     "Light that bounced at least once before reaching the surface (Cycles' Diffuse bake, Indirect only)"),
+    ("DIRECT_INDIRECT", "Direct + Indirect",
+     "All the light reaching the surface: straight from lights and the world, and bounced "
+     "(Cycles' Diffuse bake, Direct and Indirect)"),
+)
+OUTPUT_FORMAT_ITEMS = (
+    ("EXR_FLOAT", "OpenEXR (float)", "32-bit float OpenEXR (.exr), lossless"),
+    ("EXR_HALF", "OpenEXR (half)", "16-bit half float OpenEXR (.exr): half the size, 3 significant digits"),
+    ("HDR", "Radiance HDR", "Radiance RGBE (.hdr): 8-bit mantissas with a shared exponent, about 1 % precision"),
+)
+OUTPUT_8BIT_ITEMS = (
+    ("NONE", "None", "No 8-bit copy"),
+    ("PNG", "PNG (view transform)",
+     "8-bit sRGB PNG '<lightmap>_srgb.png' through the scene's view transform, look and exposure "
+     "(Color Management): what a render shows, clipped at white"),
+    ("RGBM", "RGBM PNG",
+     "8-bit RGBM PNG '<lightmap>_rgbm.png', linear: value = rgb x a x 7 (values up to 7 are kept; "
+     "three.js RGBMLoader's default range)"),
+)
 DISPLAY_QUANTITY_ITEMS = (
     ("Z", "Desirability z",
      "Desirability z (in PHYSICAL mode the outgoing radiance, W/sr/m^2), on a log colour scale"),
@@ -184,6 +205,36 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         description="Light Paths Custom: path length of the tracer, as Cycles' Max Bounces with Diffuse "
                     "bounces at least as many; Russian roulette starts after 3 (bounces)",
         default=_DEFAULTS.max_bounces, min=1, max=1024, soft_max=64,
+    )
+    # -- Lightmap content and output (bake_content ... output_8bit) --------------------------------
+    bake_content: EnumProperty(
+        name="Bake Content",
+        description="What the lightmap holds, as Cycles' Diffuse bake with the same Contributions",
+        items=BAKE_CONTENT_ITEMS, default=_DEFAULTS.bake_content,
+    )
+    multiply_color: BoolProperty(
+        name="Times Diffuse Colour",
+        description="Multiply the light by the surface's diffuse colour (Cycles' Diffuse bake with "
+                    "Color on): a combined diffuse lightmap that replaces the surface's colour",
+        default=_DEFAULTS.multiply_color,
+    )
+    denoise: BoolProperty(
+        name="Denoise",
+        description="Denoise each lightmap with Open Image Denoise (the compositor's Denoise node, with "
+                    "the texels' diffuse colour and normal as guides), each UV island on its own so no "
+                    "light crosses between islands; the raw lightmap is kept as '<image>_raw'",
+        default=_DEFAULTS.denoise,
+    )
+    output_format: EnumProperty(
+        name="Output Format",
+        description="File format of the lightmaps written to the Output Folder",
+        items=OUTPUT_FORMAT_ITEMS, default=_DEFAULTS.output_format,
+    )
+    output_8bit: EnumProperty(
+        name="8-bit Copy",
+        description="Also write an 8-bit PNG of each lightmap to the Output Folder, for engines "
+                    "that cannot read float images",
+        items=OUTPUT_8BIT_ITEMS, default=_DEFAULTS.output_8bit,
     )
     # -- General ------------------------------------------------------------------------------------
     seed: IntProperty(

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import BudgetError, SceneError, StageOrderError
-from ..settings import BAKE_MODES
+from ..settings import BAKE_CONTENTS, BAKE_MODES, OUTPUT_8BIT, OUTPUT_FORMATS
 from .memory import estimate_bake_bytes
 from .texels import rasterize_texels, texel_count_bound
 
@@ -200,6 +200,11 @@ def _check_settings(settings, names):
     mode = settings.bake_mode
     if mode not in BAKE_MODES:
         raise SceneError(f"Unknown bake mode {mode!r}: use one of {', '.join(BAKE_MODES)}")
+    for setting, value, allowed in (("Bake Content", getattr(settings, "bake_content", "INDIRECT"), BAKE_CONTENTS),
+                                    ("Output Format", getattr(settings, "output_format", "EXR_FLOAT"), OUTPUT_FORMATS),
+                                    ("8-bit Copy", getattr(settings, "output_8bit", "NONE"), OUTPUT_8BIT)):
+        if value not in allowed:
+            raise SceneError(f"Unknown {setting} {value!r}: set LMDP > Bake > {setting} to one of {', '.join(allowed)}")
     R = int(settings.bake_resolution)
     if R < 1:
         raise SceneError(f"Bake resolution must be at least 1 pixel (got {R}): set LMDP > Bake > Resolution")

@@ -1,5 +1,6 @@
 """The bake: indirect diffuse light of the selected meshes into lightmaps, texel for texel like
-Cycles' ``bake(type='DIFFUSE', pass_filter={'INDIRECT'})``.
+Cycles' ``bake(type='DIFFUSE', pass_filter={'INDIRECT'})`` (or, with ``Settings.bake_content`` /
+``multiply_color``, {'DIRECT', 'INDIRECT'} and 'COLOR': :mod:`~lmdp_addon.bake.content`).
 
 For every baked object: its texels at ``bake_resolution`` (``texels.rasterize_texels``: Cycles'
 mapping of its UV map), ``bake_samples`` paths per texel started at points of the texel's
@@ -35,6 +36,7 @@ import numpy as np
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
 from .checks import check_bake, check_texels, object_index, object_texels
+from .content import BakeContent
 from .gather import build_gather
 from .guide import build_guide
 from .residual import ControlVariate
@@ -263,7 +265,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
         if caster is None and info["same_scene"]:  # same geometry: the build's BVH serves
             caster = lmdp.dynamics.caster
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
-                            guide_fraction=settings.guide_fraction, caster=caster, control=control)
+                            guide_fraction=settings.guide_fraction, caster=caster, control=control,
+                            content=BakeContent.from_settings(settings))
     return tracer, guide, info
 
 

@@ -9,6 +9,8 @@ from .tracer import TraceStats
 
 #: Suffix of the images the add-on writes.
 IMAGE_SUFFIX = "_lmdp_indirect"
+#: Added to the image (and file) name of the raw lightmap a denoised bake keeps.
+RAW_SUFFIX = "_raw"
 
 
 @dataclass
@@ -18,12 +20,15 @@ class ObjectBake:
     name            object name; the image is ``name + IMAGE_SUFFIX``
     texels          :class:`~lmdp_addon.bake.texels.TexelSet` (covered texels, Cycles' mapping)
     triangles       (T_o,) the scene triangle of each of the object's local triangle indices
-    value           (n, 3) float32 estimate of E_ind/π per covered texel (W / sr m²)
+    value           (n, 3) float32 estimate per covered texel of the bake content (``content``:
+                    E_ind/π, (E_dir + E_ind)/π, either times ρ; W / sr m²), as path traced
     standard_error  (n, 3) float32 standard error of ``value`` from the batch means (NaN for 1 batch)
     image           (R, R, 4) float32 RGBA, margin filled, alpha 1 where filled; row 0 = bottom
     samples         paths per texel; batches: independent batches they were split into
     stats           :class:`~lmdp_addon.bake.tracer.TraceStats`
     seconds         wall time of this object's bake
+    raw_image       (R, R, 4) the path-traced image when ``image`` was denoised, else None
+    denoised_value  (n, 3) the denoised texels when ``image`` was denoised, else None
     """
 
     name: str
@@ -36,10 +41,17 @@ class ObjectBake:
     batches: int
     stats: TraceStats
     seconds: float
+    raw_image: np.ndarray = None
+    denoised_value: np.ndarray = None
 
     @property
     def image_name(self):
         return self.name + IMAGE_SUFFIX
+
+    @property
+    def raw_image_name(self):
+        """The image that keeps the path-traced lightmap of a denoised bake."""
+        return self.image_name + RAW_SUFFIX
 
     @property
     def n_texels(self):
@@ -98,6 +110,7 @@ class BakeResult:
                 "trace": o.stats.as_dict(),
                 "mean": [float(x) for x in o.value.mean(axis=0)] if o.n_texels else [0.0, 0.0, 0.0],
                 "mean_relative_standard_error": _relative_error(o),
+                "denoised": o.raw_image is not None,
                 "seconds": {**{k: v for k, v in self.seconds.items() if k != "bake"}, "bake": o.seconds},
             }
         return {

@@ -31,6 +31,9 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 * ``max_bounces`` = N keeps vertices y_1 .. y_N (NEE at each and the escape of y_N's ray), which
   is what Cycles' ``max_bounces = N`` (with ``diffuse_bounces >= N``) bakes: Cycles' kernel uses
   ``N + 1`` internally and stops shading at the vertex whose incoming bounce count reaches it;
+* ``content`` (:mod:`~lmdp_addon.bake.content`) adds the direct light at the start point x0
+  (NEE at x0 and the MIS-weighted emission / world its first ray finds: Cycles' {'DIRECT',
+  'INDIRECT'}) and / or multiplies each path by x0's diffuse colour (Cycles' 'COLOR');
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
 
@@ -56,6 +59,7 @@ from .. import world as world_light
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
+from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
@@ -99,10 +103,12 @@ class IndirectTracer:
     caster          the :class:`~lmdp_addon.raycast.RayCaster` to trace with (default: a new one)
     control         :class:`~lmdp_addon.bake.residual.ControlVariate` (RESIDUAL: cosine paths that
                     record the control variate g at their first hit, ``trace(control_out=...)``)
+    content         :class:`~lmdp_addon.bake.content.BakeContent`: also the direct light at the
+                    start point, and / or times its diffuse colour (default: indirect only)
     """
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
-                 guide_fraction=0.5, rr_start=3, caster=None, control=None):
+                 guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -121,6 +127,7 @@ class IndirectTracer:
         self.directions = (GuidedDirections(self.guide, self.guide_fraction) if self.guide is not None
                            else CosineDirections())
         self.rr_start = int(rr_start)
+        self.content = content or BakeContent()
         self.caster = caster or RayCaster(scene)
         self.lights = EmitterSampler(scene)
         self.lamps = scene.lamps
@@ -179,6 +186,8 @@ class IndirectTracer:
         beta = np.ones((n, 3), np.float32)
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
+        if self.content.direct:   # ---- direct light at x0: NEE here, MIS hits of ω0 below ----
+            L += self._next_events(pos, nrm, gnrm, lift, rng, stats)
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         bounce = 1
@@ -188,7 +197,7 @@ class IndirectTracer:
             tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
-            if bounce >= 2:
+            if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h)
             if bounce > self.max_bounces:
                 break
@@ -219,22 +228,8 @@ class IndirectTracer:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
-            direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift,
-                                                         geometric=gnrm if self.smooth else None)
-            stats.shadow_rays += shadow_rays
+            direct = self._next_events(pos, nrm, gnrm, lift, rng, stats)
             L[idx] += beta * direct
-            if not self.lamps.empty:   # Blender's lights: light sampling alone (lamps.py)
-                lamp_direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
-                                                                 geometric=gnrm if self.smooth else None)
-                stats.shadow_rays += shadow_rays
-                L[idx] += beta * lamp_direct
-                direct = direct + lamp_direct
-            if self.environment is not None:   # ---- the world's half of its MIS estimate ----
-                world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster,
-                                                                   lift, geometric=gnrm if self.smooth else None)
-                stats.shadow_rays += shadow_rays
-                L[idx] += beta * world_direct
-                direct = direct + world_direct
             if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
                 control_out[idx] = beta * (direct + z_ind)
                 if first_hit_only:
@@ -256,7 +251,35 @@ class IndirectTracer:
                 idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
                     np.flatnonzero(keep), idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
             bounce += 1
+        if self.content.multiply_color:
+            times_color(L, self._start_albedo(triangles))
         return L, stats
+
+    def _start_albedo(self, triangles):
+        """The diffuse colour ρ (n, 3) of the start points' triangles (``BakeContent.multiply_color``)."""
+        if triangles is None:
+            raise ValueError("multiply_color needs the start points' triangles")
+        return rows(self.albedo, np.asarray(triangles, dtype=np.int64))
+
+    def _next_events(self, pos, nrm, gnrm, lift, rng, stats):
+        """The light-sampling half of the direct light D(y) (k, 3) at the points ``pos`` (shading
+        normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``): the emitters' MIS estimate
+        (``lights``), Blender's lights by light sampling alone (``lamps``) and the environment
+        map's MIS estimate (``world``), in that order of random numbers."""
+        geometric = gnrm if self.smooth else None
+        direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric)
+        stats.shadow_rays += shadow_rays
+        if not self.lamps.empty:
+            lamp_direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
+                                                             geometric=geometric)
+            stats.shadow_rays += shadow_rays
+            direct = direct + lamp_direct
+        if self.environment is not None:
+            world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
+                                                               geometric=geometric)
+            stats.shadow_rays += shadow_rays
+            direct = direct + world_direct
+        return direct
 
     def _start_normals(self, pos, normals, triangles):
         """Shading and geometric normals ``(N, Ng)`` (k, 3) float32 of the start points ``pos``

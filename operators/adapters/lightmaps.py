@@ -17,7 +17,15 @@ file of one of the add-on's images was not written by LMDP and is never replaced
 gets the next free name, ``.001``, and a warning says so). A ``bake_stats.json`` the add-on did
 not write stops the bake before any work.
 
-:func:`write_lightmaps` first saves the new pixels as OpenEXR to temporary files in the output
+Formats (``Settings.output_format``): 32-bit float OpenEXR (the default), half float OpenEXR
+(``save_render`` with a scratch scene's file settings), Radiance HDR (RGBE: a shared exponent
+per texel, so a channel keeps 8 bits relative to the texel's brightest one). Optional 8-bit
+copies next to each file (``Settings.output_8bit``): ``<stem>_srgb.png``, sRGB through the scene's
+view transform, look and exposure (what a render of the same linear values shows; curves are not
+copied), or ``<stem>_rgbm.png`` (``lmdp_addon.bake.encoding``). A denoised bake also keeps the raw
+lightmap: the image ``<image>_raw`` (tagged :data:`RAW_TAG`) and the file ``<stem>_raw<ext>``.
+
+:func:`write_lightmaps` first saves the new pixels to temporary files in the output
 folder, then moves them all into place (all or nothing: a failure puts back every file it had
 replaced), and only then swaps the pixels into the images. A failure leaves every image and file
 as it was, with no temporary file or scratch image behind.
@@ -27,12 +35,20 @@ import os
 import tempfile
 
 import bpy
+import numpy as np
 
 from ...lmdp_addon.bake.driver import IMAGE_SUFFIX
+from ...lmdp_addon.bake.encoding import RGBM_RANGE, rgbm_encode
 from ...lmdp_addon.errors import SceneError
 
 #: Custom property naming the object an image was baked for (marks the add-on's own images).
 IMAGE_TAG = "lmdp_bake_object"
+#: Custom property of the raw (not denoised) lightmap a denoised bake keeps, "<image>_raw".
+RAW_TAG = "lmdp_raw_of"
+#: File extension and Blender file format of each ``Settings.output_format``.
+FORMATS = {"EXR_FLOAT": (".exr", 'OPEN_EXR'), "EXR_HALF": (".exr", 'OPEN_EXR'), "HDR": (".hdr", 'HDR')}
+#: What is added to a lightmap file's name (without its extension) for its companions.
+RAW_PART, PNG_PART, RGBM_PART = "_raw", "_srgb", "_rgbm"
 STATS_FILE = "bake_stats.json"
 #: Prefix of the temporary files written next to the outputs (hidden, removed in every case).
 TEMP_PREFIX = ".lmdp_"
@@ -139,11 +155,12 @@ def owned_files(folder, stats):
     return {f: k for f, k in owned.items() if _plain_file_name(f) and isinstance(k, str)}
 
 
-def assign_files(objects, key_of, folder, owned, warnings):
+def assign_files(objects, key_of, folder, owned, warnings, extension=".exr"):
     """{object name: file name in ``folder``} for the ``objects`` (``ObjectBake``) being baked:
     the file LMDP wrote for the same object before, else the first free name of
-    ``<safe name>_lmdp_indirect[.NNN].exr`` that no other object's file and no file of the user's
-    holds (names compared case-insensitively). Objects whose names are already safe pick first."""
+    ``<safe name>_lmdp_indirect[.NNN]<extension>`` that no other object's file and no file of the
+    user's holds (names compared case-insensitively). Objects whose names are already safe pick
+    first; a file of the same object in another format is not reused."""
     previous = {}
     for name, key in owned.items():
         previous.setdefault(key, name)
@@ -152,13 +169,14 @@ def assign_files(objects, key_of, folder, owned, warnings):
     for ob in sorted(objects, key=lambda ob: safe_file_stem(ob.name) != ob.name):
         key = key_of(ob)
         mine = previous.get(key)
-        if mine is not None and mine.lower() not in used:
+        if mine is not None and mine.lower() not in used and mine.lower().endswith(extension) \
+                and _main_file(mine, extension):
             files[ob.name] = mine
             used.add(mine.lower())
             continue
         base, skipped = safe_file_stem(ob.name) + IMAGE_SUFFIX, None
         for n in range(1000):
-            candidate = f"{base}.{n:03d}.exr" if n else f"{base}.exr"
+            candidate = f"{base}.{n:03d}{extension}" if n else f"{base}{extension}"
             low = candidate.lower()
             if low in used or owned_lower.get(low, key) != key:
                 continue
@@ -177,19 +195,43 @@ def assign_files(objects, key_of, folder, owned, warnings):
     return files
 
 
+def _main_file(name, extension):
+    """``name`` is a lightmap file, not one of its companions (raw, PNG, RGBM)."""
+    stem = name[:-len(extension)]
+    return not (stem.endswith(RAW_PART) or stem.endswith(RGBM_PART) or stem.endswith(PNG_PART))
+
+
+def companion_files(folder, main, owned, extension, parts, warnings):
+    """{part: file name} of the companions of the lightmap file ``main`` (``<stem><part><ext>``
+    for each ``(part, ext)`` of ``parts``); one that exists and that LMDP did not write is left
+    alone and left out, with a warning."""
+    stem = main[:-len(extension)]
+    owned_lower = {f.lower() for f in owned}
+    out = {}
+    for part, ext in parts:
+        name = f"{stem}{part}{ext}"
+        if name.lower() not in owned_lower and os.path.lexists(os.path.join(folder, name)):
+            warnings.append(f"{os.path.join(folder, name)} was not written by LMDP: it is left alone "
+                            f"and not replaced by the lightmap's {part.strip('_') or 'PNG'} copy")
+            continue
+        out[part + ext] = name
+    return out
+
+
 # ---- Images -------------------------------------------------------------------------------------------
 
-def _tagged_images():
+def _tagged_images(tag=IMAGE_TAG):
     """The add-on's images: local (not linked, not overrides) and tagged."""
     return [im for im in bpy.data.images if im.library is None
-            and getattr(im, "override_library", None) is None and isinstance(im.get(IMAGE_TAG), str)]
+            and getattr(im, "override_library", None) is None and isinstance(im.get(tag), str)]
 
 
-def own_image(key, image_name=None):
+def own_image(key, image_name=None, tag=IMAGE_TAG):
     """The add-on's local image for the object ``key`` (its name, or ``name_full`` when linked),
-    or None; the one named ``image_name`` (default ``key + IMAGE_SUFFIX``) if there are several."""
+    or None; the one named ``image_name`` (default ``key + IMAGE_SUFFIX``) if there are several.
+    ``tag``: :data:`RAW_TAG` for the raw lightmap of a denoised bake."""
     wanted = image_name or key + IMAGE_SUFFIX
-    tagged = [im for im in _tagged_images() if im[IMAGE_TAG] == key]
+    tagged = [im for im in _tagged_images(tag) if im[tag] == key]
     for im in tagged:
         if im.name == wanted:
             return im
@@ -213,31 +255,32 @@ def _temporary_file(folder, suffix):
     return path
 
 
-def _swap_in(ob, key, final, warnings):
-    """The add-on's image of ``ob`` showing its new pixels: reloaded from ``final`` (its EXR, now
-    in place) or, without a file, a new packed image that takes the old one's users."""
-    image = own_image(key, ob.image_name)
+def _swap_in(key, image_name, resolution, pixels, final, warnings, tag=IMAGE_TAG):
+    """The add-on's image ``image_name`` (tagged ``tag`` = ``key``) showing ``pixels`` (R, R, 4):
+    reloaded from ``final`` (its file, now in place) or, without a file, a new packed image that
+    takes the old one's users."""
+    image = own_image(key, image_name, tag)
     if image is None:
-        existing = bpy.data.images.get(ob.image_name)
-        if existing is not None and not isinstance(existing.get(IMAGE_TAG), str):
-            warnings.append(f"An image named '{ob.image_name}' that LMDP did not create exists: it "
+        existing = bpy.data.images.get(image_name)
+        if existing is not None and not isinstance(existing.get(tag), str):
+            warnings.append(f"An image named '{image_name}' that LMDP did not create exists: it "
                             "is left alone and the lightmap gets a new name")
-        image = _new_float_image(ob.image_name, ob.resolution)
-        image[IMAGE_TAG] = key
+        image = _new_float_image(image_name, resolution)
+        image[tag] = key
     if final:
         if image.packed_file is not None:
             image.unpack(method='REMOVE')
         image.source = 'FILE'
         image.filepath_raw = final
-        image.file_format = 'OPEN_EXR'
+        image.file_format = 'HDR' if final.lower().endswith(".hdr") else 'OPEN_EXR'
         image.colorspace_settings.name = 'Non-Color'
         image.reload()
         image.use_fake_user = True  # kept on save even when nothing shows it
         return image
-    fresh = _new_float_image(ob.image_name, ob.resolution)
-    _write_pixels(fresh, ob.image)
+    fresh = _new_float_image(image_name, resolution)
+    _write_pixels(fresh, pixels)
     fresh.pack()  # generated pixels are otherwise lost when the .blend is saved
-    fresh[IMAGE_TAG] = key
+    fresh[tag] = key
     fresh.use_fake_user = True
     if image.users:
         image.user_remap(fresh)  # nodes that showed the old lightmap show the new one
@@ -245,6 +288,72 @@ def _swap_in(ob, key, final, warnings):
     bpy.data.images.remove(image)
     fresh.name = name
     return fresh
+
+
+# ---- Saving one file ----------------------------------------------------------------------------------
+
+class _Saver:
+    """Writes (R, R, 4) float pixels in the formats of :data:`FORMATS` and the 8-bit copies;
+    scratch images and a scratch scene (the file settings of ``save_render``) are removed by
+    :meth:`close`. ``view_scene``: the scene whose view transform the plain PNG goes through."""
+
+    def __init__(self, view_scene=None):
+        self.view_scene = view_scene
+        self.images, self.scene = [], None
+
+    def _image(self, pixels, float_buffer=True, colorspace='Non-Color'):
+        R = pixels.shape[1]
+        im = bpy.data.images.new(f"LMDP scratch {len(self.images)}", R, pixels.shape[0], alpha=True,
+                                 float_buffer=float_buffer)
+        self.images.append(im)
+        im.colorspace_settings.name = colorspace
+        _write_pixels(im, pixels)
+        return im
+
+    def _render_settings(self):
+        if self.scene is None:
+            self.scene = bpy.data.scenes.new("LMDP scratch output")
+            source = self.view_scene
+            if source is not None:
+                view, src = self.scene.view_settings, source.view_settings
+                self.scene.display_settings.display_device = source.display_settings.display_device
+                view.view_transform = src.view_transform
+                view.look = src.look
+                view.exposure, view.gamma = src.exposure, src.gamma
+        return self.scene.render.image_settings
+
+    def save(self, pixels, path, kind):
+        """``kind``: an :data:`FORMATS` key, 'PNG' (8-bit sRGB through the view transform) or
+        'RGBM' (:func:`~lmdp_addon.bake.encoding.rgbm_encode`, raw bytes)."""
+        pixels = np.asarray(pixels, dtype=np.float32)
+        if kind in ("EXR_FLOAT", "HDR"):
+            im = self._image(pixels)
+            im.filepath_raw = path
+            im.file_format = FORMATS[kind][1]
+            im.save()
+        elif kind == "EXR_HALF":
+            settings = self._render_settings()
+            settings.file_format, settings.color_depth, settings.color_mode = 'OPEN_EXR', '16', 'RGBA'
+            settings.exr_codec = 'ZIP'
+            self._image(pixels).save_render(path, scene=self.scene)
+        elif kind == "PNG":
+            settings = self._render_settings()
+            settings.file_format, settings.color_depth, settings.color_mode = 'PNG', '8', 'RGB'
+            self._image(pixels, colorspace='Linear Rec.709').save_render(path, scene=self.scene)
+        elif kind == "RGBM":
+            im = self._image(rgbm_encode(pixels[..., :3]).astype(np.float32) / 255.0, float_buffer=False)
+            im.filepath_raw = path
+            im.file_format = 'PNG'
+            im.save()
+        else:
+            raise ValueError(f"unknown lightmap file kind {kind!r}")
+
+    def close(self):
+        for im in self.images:
+            bpy.data.images.remove(im)
+        if self.scene is not None:
+            bpy.data.scenes.remove(self.scene)
+        self.images, self.scene = [], None
 
 
 # ---- Writing ------------------------------------------------------------------------------------------
@@ -286,44 +395,80 @@ def _remove_quietly(path):
         pass
 
 
-def _stats_payload(result, files, key_of, owned, folder):
+def _stats_payload(result, files, companions, key_of, owned, folder, output_format, output_8bit):
     stats = result.stats()
+    written = {}
     for ob in result.objects:
-        stats["objects"][ob.name]["file"] = files[ob.name]
+        entry = stats["objects"][ob.name]
+        entry["file"] = files[ob.name]
+        written[files[ob.name]] = key_of(ob)
+        for part, name in companions.get(ob.name, {}).items():
+            entry[{"raw": "raw_file", "png": "png_file", "rgbm": "rgbm_file"}[_part_kind(part)]] = name
+            written[name] = key_of(ob)
     kept = {f: k for f, k in owned.items() if os.path.lexists(os.path.join(folder, f))}
-    stats["files"] = {**kept, **{files[ob.name]: key_of(ob) for ob in result.objects}}
+    stats["files"] = {**kept, **written}
+    stats["output"] = {"format": output_format, "8bit": output_8bit,
+                       "rgbm_range": RGBM_RANGE if output_8bit == "RGBM" else None}
     return stats
 
 
-def write_lightmaps(result, output_dir, warnings, keys=None):
+def _part_kind(part):
+    """'raw', 'png' or 'rgbm' for a companion key ``<part><ext>``."""
+    if part.startswith(RAW_PART):
+        return "raw"
+    return "rgbm" if part.startswith(RGBM_PART) else "png"
+
+
+def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_FLOAT", output_8bit="NONE",
+                    view_scene=None):
     """Main thread: the lightmaps of ``result`` (a ``BakeResult``) into the add-on's images and,
     with ``output_dir`` (absolute, from :func:`prepare_output_folder`), its files; ``keys`` maps
     an object name to the object's key (default: the name). Returns ``{object name: image}`` and
     appends to ``warnings``. Raises ``SceneError`` (nothing changed) if the files cannot be
-    written."""
+    written.
+
+    ``output_format`` (:data:`FORMATS`): the file each image is loaded from. ``output_8bit``:
+    'PNG' also writes ``<stem>_srgb.png`` through ``view_scene``'s view transform (the scene's Color
+    Management), 'RGBM' ``<stem>_rgbm.png`` (``lmdp_addon.bake.encoding``, range
+    ``RGBM_RANGE``). A denoised object's raw lightmap becomes the image ``<image>_raw`` and, with
+    a folder, the file ``<stem>_raw<ext>``."""
     keys = keys or {}
 
     def key_of(ob):
         return keys.get(ob.name, ob.name)
 
-    files, stats = {}, None
+    if output_format not in FORMATS:
+        raise SceneError(f"Unknown Output Format {output_format!r}: use one of {', '.join(FORMATS)}")
+    extension = FORMATS[output_format][0]
+    files, companions, stats = {}, {}, None
     if output_dir:
         owned = owned_files(output_dir, read_stats(output_dir))
-        files = assign_files(result.objects, key_of, output_dir, owned, warnings)
-        stats = _stats_payload(result, files, key_of, owned, output_dir)
-    finals = {name: os.path.join(output_dir, f) for name, f in files.items()}
-    scratch, moves = [], []
-    try:
+        files = assign_files(result.objects, key_of, output_dir, owned, warnings, extension)
         for ob in result.objects:
-            im = _new_float_image(f"LMDP scratch {ob.name}", ob.resolution)
-            scratch.append(im)
-            _write_pixels(im, ob.image)
-            if output_dir:
-                moves.append((_temporary_file(output_dir, ".exr"), finals[ob.name]))
-                im.filepath_raw = moves[-1][0]
-                im.file_format = 'OPEN_EXR'
-                im.save()
+            parts = [(RAW_PART, extension)] if ob.raw_image is not None else []
+            parts += {"PNG": [(PNG_PART, ".png")], "RGBM": [(RGBM_PART, ".png")]}.get(output_8bit, [])
+            companions[ob.name] = companion_files(output_dir, files[ob.name], owned, extension, parts, warnings)
+        stats = _stats_payload(result, files, companions, key_of, owned, output_dir, output_format, output_8bit)
+        if output_8bit == "RGBM":
+            clipped = [ob.name for ob in result.objects if ob.image[..., :3].max(initial=0.0) > RGBM_RANGE]
+            if clipped:
+                warnings.append(f"The RGBM copies of {', '.join(clipped)} clip values above {RGBM_RANGE:g} "
+                                "(the lightmap files keep them)")
+                stats["warnings"].append(warnings[-1])
+    finals = {name: os.path.join(output_dir, f) for name, f in files.items()}
+    saver, moves = _Saver(view_scene), []
+    try:
         if output_dir:
+            for ob in result.objects:
+                jobs = [(ob.image, finals[ob.name], output_format)]
+                for part, name in companions[ob.name].items():
+                    kind = _part_kind(part)
+                    pixels = ob.raw_image if kind == "raw" else ob.image
+                    jobs.append((pixels, os.path.join(output_dir, name),
+                                 output_format if kind == "raw" else kind.upper()))
+                for pixels, final, kind in jobs:
+                    moves.append((_temporary_file(output_dir, os.path.splitext(final)[1]), final))
+                    saver.save(pixels, moves[-1][0], kind)
             moves.append((_temporary_file(output_dir, ".json"), os.path.join(output_dir, STATS_FILE)))
             with open(moves[-1][0], "w", encoding="utf-8") as fh:
                 json.dump(stats, fh, indent=2, default=_json_default)
@@ -332,11 +477,22 @@ def write_lightmaps(result, output_dir, warnings, keys=None):
         raise SceneError(f"Could not write the lightmaps to {output_dir}: {error}; nothing was "
                          "changed. Check the Output Folder") from error
     finally:
-        for im in scratch:
-            bpy.data.images.remove(im)
+        saver.close()
         for temporary, _ in moves:
             _remove_quietly(temporary)
-    return {ob.name: _swap_in(ob, key_of(ob), finals.get(ob.name), warnings) for ob in result.objects}
+    images = {}
+    for ob in result.objects:
+        images[ob.name] = _swap_in(key_of(ob), ob.image_name, ob.resolution, ob.image, finals.get(ob.name),
+                                   warnings)
+        if ob.raw_image is not None:
+            raw = companions.get(ob.name, {}).get(RAW_PART + extension)
+            _swap_in(key_of(ob), ob.raw_image_name, ob.resolution, ob.raw_image,
+                     os.path.join(output_dir, raw) if raw else None, warnings, tag=RAW_TAG)
+        else:   # not denoised: a raw image of an earlier bake would be stale
+            stale = own_image(key_of(ob), ob.raw_image_name, RAW_TAG)
+            if stale is not None and not stale.users - int(stale.use_fake_user):
+                bpy.data.images.remove(stale)
+    return images
 
 
 def _json_default(value):

@@ -21,6 +21,7 @@ import json
 import bpy
 
 from ...lmdp_addon.errors import SceneError
+from .gltf_lightmap import emissive_copy, hook_gltf, unhook_gltf
 
 #: Custom property of preview materials, and of objects whose slots show one (JSON of the slots).
 PREVIEW_TAG = "lmdp_preview_material"
@@ -37,6 +38,14 @@ HOOK_UP_ITEMS = (
     ("PREVIEW", "Preview Material",
      "Show the lightmap on the object through an emission material linked to the object's "
      "material slots (the mesh's materials are kept; undo with Remove Bake Hook-up)"),
+    ("GLTF_EMISSIVE", "glTF Emissive (Preview)",
+     "The Preview hook-up showing an 8-bit sRGB copy of the lightmap scaled to its brightest texel, "
+     "so the glTF exporter writes it as an emissive texture with that strength that viewers show "
+     "right (bake Direct + Indirect times the diffuse colour for the whole baked look)"),
+    ("GLTF", "glTF Occlusion",
+     "Wire the lightmap into the glTF exporter's Occlusion (a 'glTF Material Output' group) of the "
+     "object's own materials, on the baked UV map: exported as occlusionTexture (red channel, "
+     "clipped at 1); Cycles and the bake do not see it (undo with Remove Bake Hook-up)"),
 )
 
 
@@ -61,7 +70,7 @@ def check_hook_up(objects, mode):
     hook-up of ``objects`` would edit data that is not local."""
     users = None
     for obj in objects:
-        if mode == "PREVIEW":
+        if mode in ("PREVIEW", "GLTF_EMISSIVE"):
             if not is_local(obj):
                 raise SceneError(f"'{obj.name}' is {_origin(obj)}: the Preview hook-up would edit "
                                  "library data, which Blender does not keep. Make the object local "
@@ -70,12 +79,13 @@ def check_hook_up(objects, mode):
                 raise SceneError(f"The mesh of '{obj.name}' is {_origin(obj.data)} and has no "
                                  "material slot for the Preview hook-up: make the mesh local or bake "
                                  "with Hook Up: None")
-        elif mode == "MULTIPLY":
+        elif mode in ("MULTIPLY", "GLTF"):
             users = users if users is not None else material_users()
-            for mat in _multiply_targets(obj, [], users)[0]:
+            edited = _multiply_targets(obj, [], users)[0] if mode == "MULTIPLY" else _own_materials(obj, [], users)
+            for mat in edited:
                 if not is_local(mat):
                     raise SceneError(
-                        f"Material '{mat.name}' of '{obj.name}' is {_origin(mat)}: the Multiply "
+                        f"Material '{mat.name}' of '{obj.name}' is {_origin(mat)}: the {mode.title()} "
                         "hook-up would edit library data, which Blender does not keep. Make the "
                         "material local (Object > Relations > Make Local > Selected Objects, Data "
                         "and Materials) or bake with Hook Up: Preview or None")
@@ -85,13 +95,31 @@ def hook_up(targets, mode):
     """Show each lightmap of ``targets`` ([(object, image)]) in its object's materials the
     ``mode`` way (:data:`HOOK_UP_ITEMS`); returns the warnings. Run :func:`check_hook_up` first."""
     warnings = []
-    users = material_users() if mode == "MULTIPLY" else None
+    users = material_users() if mode in ("MULTIPLY", "GLTF") else None
     for obj, image in targets:
         if mode == "MULTIPLY":
             warnings += hook_multiply(obj, image, users)
         elif mode == "PREVIEW":
             hook_preview(obj, image)
+        elif mode == "GLTF_EMISSIVE":
+            hook_preview(obj, *emissive_copy(image))
+        elif mode == "GLTF":
+            hook_gltf(obj, image, _own_materials(obj, warnings, users), warnings)
     return warnings
+
+
+def _own_materials(obj, warnings, users):
+    """The materials ``obj`` renders with that no other object uses (``users``:
+    :func:`material_users`); appends a warning for each shared one."""
+    own = []
+    for mat in render_materials(obj):
+        others = [name for name in users.get(mat, ()) if name != obj.name_full]
+        if others:
+            warnings.append(f"Material '{mat.name}' is shared with {', '.join(others[:3])}: not hooked "
+                            "up (a lightmap belongs to one object)")
+        elif mat.node_tree is not None:
+            own.append(mat)
+    return own
 
 
 # ---- What an object renders with ----------------------------------------------------------------------
@@ -296,9 +324,9 @@ def _build_preview_tree(mat, image):
     tree.links.new(emission.outputs[0], out.inputs["Surface"])
 
 
-def preview_material(obj, image):
-    """The tagged preview material of ``obj`` (Emission = lightmap), created on first use (and
-    its nodes rebuilt if its image node was deleted)."""
+def preview_material(obj, image, strength=1.0):
+    """The tagged preview material of ``obj`` (Emission = lightmap x ``strength``), created on
+    first use (and its nodes rebuilt if its image node was deleted)."""
     mat = next((m for m in bpy.data.materials if m.get(PREVIEW_TAG) == obj.name and is_local(m)), None)
     if mat is None:
         mat = bpy.data.materials.new(f"{obj.name}_lmdp_preview")
@@ -306,6 +334,9 @@ def preview_material(obj, image):
     if mat.node_tree is None or mat.node_tree.nodes.get(NODE_IMAGE) is None:
         _build_preview_tree(mat, image)
     mat.node_tree.nodes[NODE_IMAGE].image = image
+    for node in mat.node_tree.nodes:
+        if node.type == 'EMISSION':
+            node.inputs["Strength"].default_value = float(strength)
     return mat
 
 
@@ -318,11 +349,11 @@ def _slot_state(slot):
     return {"link": link, "material": material.name_full if material is not None else None}
 
 
-def hook_preview(obj, image):
+def hook_preview(obj, image, strength=1.0):
     """Show the preview material on every slot of ``obj`` at object level (mesh data untouched,
     except for one empty slot added to a mesh that has none). The slots' previous state is kept
     on the object, extended with any slot added since an earlier preview."""
-    mat = preview_material(obj, image)
+    mat = preview_material(obj, image, strength)
     saved = _saved_slots(obj)
     if saved is None:
         added = False
@@ -371,4 +402,5 @@ def remove_hook_up(obj):
         if PREVIEW_SAVED in obj:
             left.append(obj.name_full)
     removed, linked = unhook_multiply(obj)
+    removed += unhook_gltf([mat for mat in render_materials(obj) if is_local(mat)])
     return removed, preview, left + linked

@@ -328,7 +328,14 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row.prop(props, "max_bounces")
         if props.light_paths == 'SCENE':
             _status(layout, _light_paths_line(context.scene), icon='LIGHT')
+        layout.prop(props, "bake_content")
+        layout.prop(props, "multiply_color")
+        layout.prop(props, "denoise")
         layout.prop(props, "output_dir")
+        column = layout.column(align=True)
+        column.active = bool(props.output_dir)   # files only with an Output Folder
+        column.prop(props, "output_format")
+        column.prop(props, "output_8bit")
         if not _operator(layout, "lmdp.bake", icon='RENDER_STILL'):
             _status(layout, "The bake operator is not part of this build", icon='INFO')
         _operator(layout, "lmdp.export_npz", text="Export Matrices (.npz)", icon='EXPORT')

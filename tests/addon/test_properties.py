@@ -4,7 +4,8 @@ import dataclasses
 import bpy
 import pytest
 
-ENGINE_ENUMS = {"cost_mode": "COST_MODES", "solver": "SOLVERS", "bake_mode": "BAKE_MODES"}
+ENGINE_ENUMS = {"cost_mode": "COST_MODES", "solver": "SOLVERS", "bake_mode": "BAKE_MODES",
+                "bake_content": "BAKE_CONTENTS", "output_format": "OUTPUT_FORMATS", "output_8bit": "OUTPUT_8BIT"}
 DISPLAY_ENUMS = {"display_quantity": ("Z", "COST_TO_GO", "RESIDUAL"),
                  "policy_subset": ("ACTIVE_OBJECT", "MOST_INFORMATIVE")}
 
