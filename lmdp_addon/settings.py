@@ -11,6 +11,8 @@ BAKE_MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
 #: Where the bake's path length comes from (``scene.lmdp.light_paths``): the scene's Cycles
 #: Light Paths, or ``Settings.max_bounces``.
 LIGHT_PATHS = ("SCENE", "CUSTOM")
+#: How each object's lightmap size is chosen: ``bake_resolution`` for all, or from ``texel_density``.
+RESOLUTION_MODES = ("FIXED", "DENSITY")
 
 
 @dataclass
@@ -38,6 +40,17 @@ class Settings:
     guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
     max_bounces: int = 8              #: path length N of the tracer (Russian roulette after 3);
                                       #: the Blender layer puts LightPaths.path_length here
+    # Lightmap layout (UV map, size per object, atlas)
+    lightmap_uv_map: str = ""         #: UV map the lightmaps are laid out on ('' = "LMDP Lightmap"
+                                      #: where a mesh has it, else its active render UV map)
+    auto_lightmap_uvs: bool = True    #: create "LMDP Lightmap" where the chosen map is missing,
+                                      #: overlaps, leaves [0, 1] or covers almost no texel
+    resolution_mode: str = "FIXED"    #: 'FIXED' (bake_resolution) or 'DENSITY' (texel_density)
+    texel_density: float = 32.0       #: DENSITY: texels per metre of surface
+    min_resolution: int = 16          #: DENSITY: smallest lightmap side (pixels)
+    max_resolution: int = 1024        #: DENSITY: largest lightmap side (pixels)
+    power_of_two: bool = True         #: DENSITY: round each side up to a power of two
+    atlas: bool = False               #: bake the objects into one shared lightmap image
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)

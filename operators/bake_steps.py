@@ -34,6 +34,7 @@ from ..lmdp_addon.bake import driver
 from ..lmdp_addon.bake.checks import check_bake, check_texels
 from ..lmdp_addon.errors import SceneError
 from .adapters.extract import extract_scene
+from .adapters.lightmap_uvs import prepare_lightmap_uvs
 from .adapters.lightmaps import prepare_output_folder, write_lightmaps
 from .adapters.materials import check_hook_up, hook_up as hook_up_materials
 from .common import selected_meshes
@@ -54,6 +55,7 @@ class BakeInputs:
     warnings: list = field(default_factory=list)
     keys: dict = field(default_factory=dict)  #: object name -> key (``name_full``)
     light_paths: object = None         #: the LightPaths the bake follows (None: settings.max_bounces)
+    uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
 
 
 @dataclass
@@ -63,6 +65,7 @@ class BakedLightmaps:
     result: object                     #: the engine's BakeResult
     keys: dict                         #: object name -> key (``name_full``)
     light_paths: object = None         #: the LightPaths of the bake
+    uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
 
 
 def check_light_paths(light_paths):
@@ -105,29 +108,33 @@ def bake_inputs(context, settings, hook_up="NONE", light_paths=None):
     carry the path length of ``light_paths`` (``properties.bake_settings_from_scene``)."""
     path_warnings = check_light_paths(light_paths)
     meshes = selected_meshes(context)
-    scene = extract_scene(context, meshes)
+    uv_maps, uv_warnings = prepare_lightmap_uvs(context, meshes, settings, extract_scene)
+    scene = extract_scene(context, meshes, uv_maps=uv_maps)
     check_distinct_names(context, scene, meshes)
     lmdp = session_for(context.scene).result if settings.bake_mode != "UNGUIDED" else None
     plan = check_bake(scene, [obj.name for obj in meshes], settings, lmdp, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
     return BakeInputs(scene=scene, plan=plan, lmdp=lmdp,
-                      warnings=path_warnings + list(scene.warnings) + list(plan.warnings),
-                      keys=object_keys(meshes), light_paths=light_paths)
+                      warnings=path_warnings + uv_warnings + list(scene.warnings) + list(plan.warnings),
+                      keys=object_keys(meshes), light_paths=light_paths, uv_maps=uv_maps)
 
 
-def planned_bake_inputs(context, scene, names, settings, hook_up="NONE", light_paths=None):
+def planned_bake_inputs(context, scene, names, settings, hook_up="NONE", light_paths=None, uv_maps=None,
+                        uv_warnings=()):
     """Main thread: the bake inputs of Run All, which has captured ``scene`` (the selected meshes
-    ``names``) and will sample, build and solve it before baking (it sets ``BakeInputs.lmdp`` to
-    that result). Checks everything the bake can check before the solution exists."""
+    ``names``, laid out on ``uv_maps``: :func:`.adapters.lightmap_uvs.prepare_lightmap_uvs`, whose
+    ``uv_warnings`` it passes on) and will sample, build and solve it before baking (it sets
+    ``BakeInputs.lmdp`` to that result). Checks everything the bake can check before the solution
+    exists."""
     path_warnings = check_light_paths(light_paths)
     meshes = [obj for obj in selected_meshes(context) if obj.name in set(names)]
     check_distinct_names(context, scene, meshes)
     plan = check_bake(scene, names, settings, will_solve=True, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
-    return BakeInputs(scene=scene, plan=plan, warnings=path_warnings + list(plan.warnings),
-                      keys=object_keys(meshes), light_paths=light_paths)
+    return BakeInputs(scene=scene, plan=plan, warnings=path_warnings + list(uv_warnings) + list(plan.warnings),
+                      keys=object_keys(meshes), light_paths=light_paths, uv_maps=dict(uv_maps or {}))
 
 
 def check_bake_texels(inputs, progress):
@@ -147,7 +154,8 @@ def compute_bake(inputs, settings, progress):
     result.warnings = list(inputs.warnings) + list(inputs.plan.texel_warnings)
     if inputs.light_paths is not None:
         result.light_paths = inputs.light_paths.as_dict()
-    return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths)
+    return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths,
+                          uv_maps=dict(inputs.uv_maps))
 
 
 def _objects_by_key(keys):
@@ -171,11 +179,12 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     present = [obj for obj in objects.values() if obj is not None]
     check_hook_up(present, hook_up)
     images = write_lightmaps(result, output_dir, warnings, baked.keys)
+    images = {ob.name: images[result.output_of(ob.name)] for ob in result.objects}   # atlas members share one
     gone = [name for name, obj in objects.items() if obj is None]
     if gone and hook_up != "NONE":
         warnings.append(f"{', '.join(gone)} no longer in the file: lightmap written, not hooked up")
     warnings += hook_up_materials([(objects[n], im) for n, im in images.items()
-                                    if objects.get(n) is not None], hook_up)
+                                    if objects.get(n) is not None], hook_up, baked.uv_maps)
     session_for(context.scene).store("bake", result, seconds=result.seconds.get("bake"))
     rays = sum(ob.stats.total_rays for ob in result.objects)
     bake_seconds = result.seconds.get("bake", 0.0)

@@ -6,7 +6,8 @@ read them with :func:`settings_from_scene`, which returns the engine's plain ``S
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, LIGHT_PATHS, SOLVERS, LightPaths, Settings
+from ..lmdp_addon.settings import (BAKE_MODES, COST_MODES, LIGHT_PATHS, RESOLUTION_MODES, SOLVERS, LightPaths,
+                                    Settings)
 
 _DEFAULTS = Settings()
 
@@ -45,6 +46,12 @@ LIGHT_PATHS_ITEMS = (
      "Max Bounces (Total) and Diffuse (bounces); Cycles' indirect clamp is not applied"),
     ("CUSTOM", "Custom",
      "Use Max Bounces below as the path length (bounces), whatever the scene's Cycles Light Paths"),
+)
+RESOLUTION_MODE_ITEMS = (
+    ("FIXED", "Fixed", "Every lightmap is Resolution x Resolution pixels"),
+    ("DENSITY", "Texel Density",
+     "Each object's lightmap side from its surface area: Texel Density x sqrt(area / UV area), "
+     "clamped to Min / Max Resolution (optionally a power of two)"),
 )
 DISPLAY_QUANTITY_ITEMS = (
     ("Z", "Desirability z",
@@ -181,6 +188,52 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         description="Light Paths Custom: path length of the tracer, as Cycles' Max Bounces with Diffuse "
                     "bounces at least as many; Russian roulette starts after 3 (bounces)",
         default=_DEFAULTS.max_bounces, min=1, max=1024, soft_max=64,
+    )
+    # -- Lightmap layout (UV map, size per object, atlas) --------------------------------------------
+    lightmap_uv_map: StringProperty(
+        name="Lightmap UV Map",
+        description="UV map the lightmaps are laid out on (and read through by the hook-up); empty: "
+                    "'LMDP Lightmap' where a mesh has it, else its active render UV map",
+        default=_DEFAULTS.lightmap_uv_map,
+    )
+    auto_lightmap_uvs: BoolProperty(
+        name="Auto Lightmap UVs",
+        description="Before baking, create the UV map 'LMDP Lightmap' (Smart UV Project + Pack Islands) on "
+                    "meshes whose lightmap UV map is missing, overlaps, leaves [0, 1] or has islands "
+                    "smaller than a texel; the other UV maps and the render UV map are not changed",
+        default=_DEFAULTS.auto_lightmap_uvs,
+    )
+    resolution_mode: EnumProperty(
+        name="Size",
+        description="How each object's lightmap size is chosen",
+        items=RESOLUTION_MODE_ITEMS, default=_DEFAULTS.resolution_mode,
+    )
+    texel_density: FloatProperty(
+        name="Texel Density",
+        description="Texel Density size: lightmap texels per metre of surface (texels/m)",
+        default=_DEFAULTS.texel_density, min=1e-3, max=1e5, soft_min=1.0, soft_max=1024.0,
+    )
+    min_resolution: IntProperty(
+        name="Min Resolution",
+        description="Texel Density size: smallest lightmap side (pixels)",
+        default=_DEFAULTS.min_resolution, min=1, max=16384, subtype='PIXEL',
+    )
+    max_resolution: IntProperty(
+        name="Max Resolution",
+        description="Texel Density size: largest lightmap side (pixels)",
+        default=_DEFAULTS.max_resolution, min=1, max=16384, subtype='PIXEL',
+    )
+    power_of_two: BoolProperty(
+        name="Power of Two",
+        description="Texel Density size: round each lightmap side up to a power of two (pixels)",
+        default=_DEFAULTS.power_of_two,
+    )
+    atlas: BoolProperty(
+        name="Atlas",
+        description="Bake the selected objects into one shared image 'LMDP Atlas_lmdp_indirect', each in its "
+                    "own region of its 'LMDP Lightmap' UV map (packed together); shared materials are hooked "
+                    "up through it",
+        default=_DEFAULTS.atlas,
     )
     # -- General ------------------------------------------------------------------------------------
     seed: IntProperty(

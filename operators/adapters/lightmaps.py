@@ -289,17 +289,20 @@ def _remove_quietly(path):
 def _stats_payload(result, files, key_of, owned, folder):
     stats = result.stats()
     for ob in result.objects:
-        stats["objects"][ob.name]["file"] = files[ob.name]
+        stats["objects"][ob.name]["file"] = files[result.output_of(ob.name)]
+    for atlas in result.atlases:
+        stats["atlases"][atlas.name]["file"] = files[atlas.name]
     kept = {f: k for f, k in owned.items() if os.path.lexists(os.path.join(folder, f))}
-    stats["files"] = {**kept, **{files[ob.name]: key_of(ob) for ob in result.objects}}
+    stats["files"] = {**kept, **{files[ob.name]: key_of(ob) for ob in result.outputs()}}
     return stats
 
 
 def write_lightmaps(result, output_dir, warnings, keys=None):
     """Main thread: the lightmaps of ``result`` (a ``BakeResult``) into the add-on's images and,
     with ``output_dir`` (absolute, from :func:`prepare_output_folder`), its files; ``keys`` maps
-    an object name to the object's key (default: the name). Returns ``{object name: image}`` and
-    appends to ``warnings``. Raises ``SceneError`` (nothing changed) if the files cannot be
+    an object name to the object's key (default: the name; an atlas's key is its name). One image
+    per output (``BakeResult.outputs``: an object's own lightmap, or an atlas shared by its
+    objects). Returns ``{output name: image}`` and appends to ``warnings``. Raises ``SceneError`` (nothing changed) if the files cannot be
     written."""
     keys = keys or {}
 
@@ -309,12 +312,12 @@ def write_lightmaps(result, output_dir, warnings, keys=None):
     files, stats = {}, None
     if output_dir:
         owned = owned_files(output_dir, read_stats(output_dir))
-        files = assign_files(result.objects, key_of, output_dir, owned, warnings)
+        files = assign_files(result.outputs(), key_of, output_dir, owned, warnings)
         stats = _stats_payload(result, files, key_of, owned, output_dir)
     finals = {name: os.path.join(output_dir, f) for name, f in files.items()}
     scratch, moves = [], []
     try:
-        for ob in result.objects:
+        for ob in result.outputs():
             im = _new_float_image(f"LMDP scratch {ob.name}", ob.resolution)
             scratch.append(im)
             _write_pixels(im, ob.image)
@@ -336,7 +339,7 @@ def write_lightmaps(result, output_dir, warnings, keys=None):
             bpy.data.images.remove(im)
         for temporary, _ in moves:
             _remove_quietly(temporary)
-    return {ob.name: _swap_in(ob, key_of(ob), finals.get(ob.name), warnings) for ob in result.objects}
+    return {ob.name: _swap_in(ob, key_of(ob), finals.get(ob.name), warnings) for ob in result.outputs()}
 
 
 def _json_default(value):
