@@ -38,6 +38,10 @@ UV_MARGIN_TEXELS = 2
 #: Smart UV Project's angle limit (degrees), Blender's default.
 SMART_ANGLE_LIMIT = 66.0
 UNWRAP_METHODS = ("SMART", "LIGHTMAP")
+#: Largest lightmap side at which :func:`prepare_lightmap_uvs` looks for bad maps on the main
+#: thread (it rasterises each object once; the bake's own texel checks, in the worker, use the
+#: full size and still refuse what only shows there).
+DETECT_RESOLUTION = 256
 
 
 def chosen_uv_name(mesh, setting=""):
@@ -176,7 +180,8 @@ def prepare_lightmap_uvs(context, meshes, settings, extract_scene):
     indices = [scene.object_names.index(n) for n in names]
     atlas = bool(settings.atlas) and len(names) > 1
     resolutions = object_resolutions(scene, indices, settings, atlas=atlas)
-    problems = lightmap_uv_problems(scene, names, indices, resolutions, atlas=atlas)
+    detect = {i: min(int(r), DETECT_RESOLUTION) for i, r in resolutions.items()}
+    problems = lightmap_uv_problems(scene, names, indices, detect, atlas=atlas)
     if not problems:
         return uv_maps, []
     by_name = {obj.name: obj for obj in meshes}
@@ -204,6 +209,7 @@ def _create_checked(context, objects, resolution, joint, extract_scene):
     scene = extract_scene(context, objects, uv_maps=uv_maps)
     names = [o.name for o in objects if o.name in scene.object_names]
     indices = [scene.object_names.index(n) for n in names]
-    if lightmap_uv_problems(scene, names, indices, {i: resolution for i in indices}, atlas=joint):
+    if lightmap_uv_problems(scene, names, indices, {i: min(int(resolution), DETECT_RESOLUTION) for i in indices},
+                            atlas=joint):
         warnings = create_lightmap_uvs(context, objects, resolution, method="LIGHTMAP", joint=joint)
     return warnings

@@ -2,7 +2,7 @@
 
 * ``'MULTIPLY'``: in each material the object renders with, an Image Texture node "LMDP
   Lightmap" (the lightmap, read through a UV Map node "LMDP Lightmap UV" naming the UV map that
-  was baked, ``lightmap_uvs.chosen_uv_name``) and a Mix node "LMDP Lightmap Multiply" (Multiply,
+  was baked, ``lightmap_uvs.chosen_uv_name``, unless that is the render UV map) and a Mix node "LMDP Lightmap Multiply" (Multiply,
   factor 1) are inserted in front of the Base Color (Principled BSDF) or Color (Diffuse BSDF)
   input; whatever fed that input (a link or its value) feeds the Mix node's A input. Nothing else
   is changed; :func:`unhook_multiply` removes the nodes and restores the link or value. A material
@@ -94,6 +94,7 @@ def hook_up(targets, mode, uv_maps=None):
     warnings = []
     uv_maps = uv_maps or {}
     users = material_users() if mode == "MULTIPLY" else None
+    uv_maps = {obj.name: _pinned_uv_map(obj, uv_maps.get(obj.name)) for obj, _ in targets}
     shown = {obj.name_full: (image, uv_maps.get(obj.name)) for obj, image in targets}
     shared = {}
     for obj, image in targets:
@@ -106,6 +107,14 @@ def hook_up(targets, mode, uv_maps=None):
                         "the same UV map; bake them with Atlas on, or use the Preview hook-up): "
                         + "; ".join(f"'{m}' (used by {', '.join(sorted(u))})" for m, u in sorted(shared.items())))
     return warnings
+
+
+def _pinned_uv_map(obj, uv_map):
+    """``uv_map``, or None when it is the render UV map of ``obj``'s mesh (the Image Texture reads
+    that one without a UV Map node)."""
+    layers = getattr(obj.data, "uv_layers", None)
+    render = next((l.name for l in layers if l.active_render), None) if layers is not None else None
+    return None if not uv_map or uv_map == render else uv_map
 
 
 # ---- What an object renders with ----------------------------------------------------------------------

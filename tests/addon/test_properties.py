@@ -4,7 +4,8 @@ import dataclasses
 import bpy
 import pytest
 
-ENGINE_ENUMS = {"cost_mode": "COST_MODES", "solver": "SOLVERS", "bake_mode": "BAKE_MODES"}
+ENGINE_ENUMS = {"cost_mode": "COST_MODES", "solver": "SOLVERS", "bake_mode": "BAKE_MODES",
+                "resolution_mode": "RESOLUTION_MODES"}
 DISPLAY_ENUMS = {"display_quantity": ("Z", "COST_TO_GO", "RESIDUAL"),
                  "policy_subset": ("ACTIVE_OBJECT", "MOST_INFORMATIVE")}
 
