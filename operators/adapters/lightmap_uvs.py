@@ -8,7 +8,8 @@ same texels takes it as ``uv_layer``, and the MULTIPLY hook-up reads the lightma
 :func:`create_lightmap_uvs` makes "LMDP Lightmap" with Blender's own unwrapping: Smart UV Project
 (no margin) followed by Pack Islands with ``margin`` texels of the lightmap between islands
 (``margin_method='FRACTION'``, which keeps that fraction of the unit square on every side of an
-island: margin / 2R), or Lightmap Pack (every face its
+island: margin / 2R; islands packed by their bounding boxes, ``shape_method='AABB'``: Blender's
+exact-shape packing with a FRACTION margin took 40-70 s for three cubes), or Lightmap Pack (every face its
 own island) when asked or when Smart UV Project's charts overlap. The other UV maps, which one is
 active and which one renders are put back as they were, so the materials' Image Textures (which
 read the render map unless a UV Map node names another) look up exactly what they did. Only on a
@@ -154,7 +155,7 @@ def create_lightmap_uvs(context, objects, resolution, margin=UV_MARGIN_TEXELS, m
                     bpy.ops.uv.smart_project(angle_limit=math.radians(SMART_ANGLE_LIMIT), island_margin=0.0,
                                              area_weight=0.0, correct_aspect=True, scale_to_bounds=False)
                 bpy.ops.uv.select_all(action='SELECT')
-                bpy.ops.uv.pack_islands(rotate=True, margin_method='FRACTION', margin=fraction)
+                bpy.ops.uv.pack_islands(rotate=True, shape_method='AABB', margin_method='FRACTION', margin=fraction)
     finally:
         for mesh, (active_index, render, had_none) in saved.items():
             layers = mesh.uv_layers
