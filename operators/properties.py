@@ -72,7 +72,8 @@ POLICY_SUBSET_ITEMS = (
 )
 
 for _items, _identifiers in ((COST_MODE_ITEMS, COST_MODES), (SOLVER_ITEMS, SOLVERS),
-                             (BAKE_MODE_ITEMS, BAKE_MODES), (LIGHT_PATHS_ITEMS, LIGHT_PATHS)):
+                             (BAKE_MODE_ITEMS, BAKE_MODES), (LIGHT_PATHS_ITEMS, LIGHT_PATHS),
+                             (RESOLUTION_MODE_ITEMS, RESOLUTION_MODES)):
     assert tuple(item[0] for item in _items) == tuple(_identifiers), "enum items out of sync with the engine"
 
 

@@ -19,10 +19,15 @@ import numpy as np
 import pytest
 
 from helpers import remove_uv_maps, select
-from test_bake_vs_cycles import BOUNCES, CACHE, K, assert_means_agree, build, compare, demo  # noqa: F401
+from test_bake_vs_cycles import BOUNCES, CACHE, assert_means_agree, build, compare
 
 RESOLUTION = 24
 LIGHTMAP = "LMDP Lightmap"
+
+
+@pytest.fixture
+def demo(lmdp_ext):
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
 
 
 def grey_texture_material(name, value=0.6):
@@ -102,7 +107,7 @@ def uv_key(obj, layer_name):
     return hashlib.sha1(uv.tobytes()).hexdigest()[:12]
 
 
-def reference_on(lmdp_ext, demo, obj, uv_map, resolution, samples, seeds=(1, 2)):  # noqa: F811
+def reference_on(lmdp_ext, demo, obj, uv_map, resolution, samples, seeds=(1, 2)):
     """Cycles' DIFFUSE / INDIRECT bakes of ``obj`` on the UV map ``uv_map`` (cached under a key
     that includes the map's coordinates); (len(seeds), R, R, 3)."""
     extract = lmdp_ext.sub("operators.adapters.extract")
@@ -190,7 +195,7 @@ def test_problems_of_uv_maps(fresh_scene, lmdp_ext):
     assert "too small" in problems["Tiny"]
 
 
-def check_auto_uvs_against_cycles(lmdp_ext, demo, resolution, samples, tolerance):  # noqa: F811
+def check_auto_uvs_against_cycles(lmdp_ext, demo, resolution, samples, tolerance):
     """The three cubes baked with the defaults: "LMDP Lightmap" on each, the user's maps,
     render / active maps and materials unchanged, each cube's mean within ``tolerance`` (relative)
     and 5 standard errors of Cycles' bake on "LMDP Lightmap"."""
@@ -220,14 +225,14 @@ def check_auto_uvs_against_cycles(lmdp_ext, demo, resolution, samples, tolerance
     assert f"Created the UV map '{LIGHTMAP}'" in warnings and "NoUV" in warnings
 
 
-def test_auto_lightmap_uvs_keep_the_users_maps_and_match_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_auto_lightmap_uvs_keep_the_users_maps_and_match_cycles(fresh_scene, lmdp_ext, demo):
     """Default suite: 24 px, 512 samples on both sides (about 2 % standard error per cube):
     within 5 standard errors (the relative bound is the same 5 standard errors, at most 10 %)."""
     check_auto_uvs_against_cycles(lmdp_ext, demo, 24, 512, tolerance=0.10)
 
 
 @pytest.mark.slow
-def test_auto_lightmap_uvs_match_cycles_within_two_percent(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_auto_lightmap_uvs_match_cycles_within_two_percent(fresh_scene, lmdp_ext, demo):
     """32 px, 2048 samples on both sides (about 0.5 % standard error): within 2 %."""
     check_auto_uvs_against_cycles(lmdp_ext, demo, 32, 2048, tolerance=0.02)
 
