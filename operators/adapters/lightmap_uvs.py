@@ -28,7 +28,7 @@ from contextlib import contextmanager
 
 import bpy
 
-from ...lmdp_addon.bake.checks import lightmap_uv_problems
+from ...lmdp_addon.bake.checks import check_bake_memory, lightmap_uv_problems
 from ...lmdp_addon.bake.resolution import object_resolutions
 from ...lmdp_addon.errors import SceneError
 
@@ -181,6 +181,7 @@ def prepare_lightmap_uvs(context, meshes, settings, extract_scene):
     indices = [scene.object_names.index(n) for n in names]
     atlas = bool(settings.atlas) and len(names) > 1
     resolutions = object_resolutions(scene, indices, settings, atlas=atlas)
+    check_bake_memory(scene, names, indices, settings, resolutions)   # an oversized bake stops before any work
     detect = {i: min(int(r), DETECT_RESOLUTION) for i, r in resolutions.items()}
     problems = lightmap_uv_problems(scene, names, indices, detect, atlas=atlas)
     if not problems:
