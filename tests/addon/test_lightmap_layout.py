@@ -70,6 +70,26 @@ def test_texel_density_gives_each_object_its_size(fresh_scene, lmdp_ext, tmp_pat
     assert stats["settings"]["resolution_mode"] == "DENSITY"
 
 
+def test_texel_density_of_an_atlas_sums_the_areas(fresh_scene, lmdp_ext):
+    """One side for the atlas: density x sqrt(sum of world areas / sum of UV areas) of its
+    objects' jointly packed "LMDP Lightmap"."""
+    cubes = atlas_cubes()
+    result = bake(lmdp_ext, cubes, resolution_mode='DENSITY', texel_density=100.0, power_of_two=False,
+                  min_resolution=1, max_resolution=4096, atlas=True)
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    arrays = extract.extract_scene(bpy.context, cubes, uv_maps={o.name: LIGHTMAP for o in cubes})
+    world = uv = 0.0
+    for obj in cubes:
+        own = arrays.triangle_object == arrays.object_names.index(obj.name)
+        world += 6 * 0.14 ** 2 / 12 * np.count_nonzero(own)          # 12 triangles per cube
+        t = arrays.triangle_uv[own].astype(np.float64)
+        e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+        uv += 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+    R = int(np.ceil(100.0 * np.sqrt(world / uv)))
+    assert {o.resolution for o in result.objects} == {R}
+    assert result.atlases[0].resolution == R
+
+
 def test_fixed_resolution_stays_the_default(fresh_scene, lmdp_ext):
     floor, box = density_scene()
     result = bake(lmdp_ext, [floor, box], bake_resolution=24)

@@ -250,6 +250,20 @@ def test_auto_lightmap_uvs_off_leaves_the_meshes_alone(fresh_scene, lmdp_ext):
     assert all(o.data.uv_layers.get(LIGHTMAP) is None for o in cubes.values())
 
 
+def test_run_all_creates_lightmap_uvs_before_it_samples(fresh_scene, lmdp_ext):
+    """Run All (sample, build, solve, bake) gives the mesh without UVs its map and bakes it."""
+    build("CORNELL_BOX", lmdp_ext)
+    cubes = three_cubes()
+    s = fresh_scene.lmdp
+    s.point_count, s.rays_per_stratum, s.light_samples = 256, 1, 4
+    s.bake_resolution, s.bake_samples = 16, 4
+    select([cubes["NoUV"], bpy.data.objects["Floor"]])
+    assert bpy.ops.lmdp.run_pipeline(show=False) == {'FINISHED'}
+    assert cubes["NoUV"].data.uv_layers.get(LIGHTMAP) is not None
+    result = lmdp_ext.sub("operators.session").session_for(fresh_scene).require("bake")
+    assert result.object("NoUV").n_texels > 0 and bpy.data.objects["Floor"].data.uv_layers.get(LIGHTMAP) is None
+
+
 def test_create_lightmap_uvs_operator(fresh_scene, lmdp_ext):
     """The operator makes a map without overlap inside [0, 1], the render map unchanged."""
     build("CORNELL_BOX", lmdp_ext)
