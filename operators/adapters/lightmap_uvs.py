@@ -68,6 +68,19 @@ def _check_editable(objects):
                                  "give it a UV map in its library file")
 
 
+def _check_own_meshes(objects):
+    """An atlas lays every object out in its own region of one UV map: objects that share one
+    mesh share its UVs and cannot be apart."""
+    by_mesh = {}
+    for obj in objects:
+        by_mesh.setdefault(obj.data.name_full, []).append(obj.name)
+    shared = [names for names in by_mesh.values() if len(names) > 1]
+    if shared:
+        raise SceneError(f"{'; '.join(', '.join(n) for n in shared)} share one mesh, so their UVs are one and the "
+                         "same and an atlas cannot give each its own region: make them single users (Object > "
+                         "Relations > Make Single User > Object & Data) or bake without Atlas")
+
+
 @contextmanager
 def _editing(context, objects):
     """Edit Mode on ``objects`` (all faces selected), the selection, active object and mode put back after."""
@@ -127,6 +140,8 @@ def create_lightmap_uvs(context, objects, resolution, margin=UV_MARGIN_TEXELS, m
     if not objects:
         return []
     _check_editable(objects)
+    if joint:
+        _check_own_meshes(objects)
     warnings = []
     saved = {}
     for obj in objects:

@@ -125,10 +125,17 @@ def atlas_cubes():
     return cubes
 
 
-def test_atlas_packs_three_objects_without_overlap_and_matches_per_object_bakes(fresh_scene, lmdp_ext):
+def test_atlas_packs_three_objects_without_overlap_and_matches_per_object_bakes(fresh_scene, lmdp_ext, tmp_path):
     cubes = atlas_cubes()
     R = 32
-    atlas = bake(lmdp_ext, cubes, bake_resolution=R, bake_samples=8, max_bounces=3, atlas=True)
+    atlas = bake(lmdp_ext, cubes, bake_resolution=R, bake_samples=8, max_bounces=3, atlas=True,
+                 output_dir=str(tmp_path))
+    stats = json.loads((tmp_path / "bake_stats.json").read_text())
+    assert stats["atlases"]["LMDP Atlas"]["file"] == "LMDP Atlas_lmdp_indirect.exr"
+    assert sorted(stats["atlases"]["LMDP Atlas"]["objects"]) == ["Left", "Middle", "Right"]
+    assert {stats["objects"][o.name]["file"] for o in cubes} == {"LMDP Atlas_lmdp_indirect.exr"}
+    assert (tmp_path / "LMDP Atlas_lmdp_indirect.exr").is_file()
+    assert not any((tmp_path / f"{o.name}_lmdp_indirect.exr").exists() for o in cubes)
     assert [a.name for a in atlas.atlases] == ["LMDP Atlas"]
     image = atlas.atlases[0].image
     covered = np.zeros((R, R), int)
@@ -142,7 +149,7 @@ def test_atlas_packs_three_objects_without_overlap_and_matches_per_object_bakes(
     assert "LMDP Atlas_lmdp_indirect" in bpy.data.images
     assert not any(f"{o.name}_lmdp_indirect" in bpy.data.images for o in cubes)
     # the same objects baked one by one on the same (now existing) map, in the same order
-    separate = bake(lmdp_ext, cubes, bake_resolution=R, bake_samples=8, max_bounces=3, atlas=False)
+    separate = bake(lmdp_ext, cubes, bake_resolution=R, bake_samples=8, max_bounces=3, atlas=False, output_dir="")
     for ob in atlas.objects:
         one = separate.object(ob.name)
         assert not one.atlas
@@ -194,3 +201,17 @@ def test_warnings_beyond_the_limit_are_named(lmdp_ext):
     common.report_warnings(op, [f"warning {k}" for k in range(8)])
     text = " ".join(op.lines)
     assert all(f"warning {k}" in text for k in range(8)), op.lines
+
+
+def test_an_atlas_of_objects_sharing_a_mesh_is_refused_by_name(fresh_scene, lmdp_ext):
+    cubes = atlas_cubes()
+    twin = cubes[0].copy()                  # same mesh data
+    twin.name = "Twin"
+    twin.location.x += 0.1
+    bpy.context.collection.objects.link(twin)
+    s = fresh_scene.lmdp
+    s.bake_mode, s.atlas = "UNGUIDED", True
+    select([cubes[0], twin])
+    with pytest.raises(RuntimeError, match="Left, Twin share one mesh"):
+        bpy.ops.lmdp.bake()
+    assert cubes[0].data.uv_layers.get(LIGHTMAP) is None
