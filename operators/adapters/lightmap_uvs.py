@@ -202,6 +202,9 @@ def prepare_lightmap_uvs(context, meshes, settings, extract_scene):
     if not problems:
         return uv_maps, []
     by_name = {obj.name: obj for obj in meshes}
+    for n in problems:
+        if uv_maps.get(n) is None and len(by_name[n].data.uv_layers):
+            problems[n] = f"it has no UV map named '{settings.lightmap_uv_map}'"
     targets = names if atlas else [n for n in names if n in problems]
     R = {n: resolutions[i] for n, i in zip(names, indices)}
     warnings = []

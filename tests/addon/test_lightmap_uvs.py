@@ -250,6 +250,17 @@ def test_auto_lightmap_uvs_off_leaves_the_meshes_alone(fresh_scene, lmdp_ext):
     assert all(o.data.uv_layers.get(LIGHTMAP) is None for o in cubes.values())
 
 
+def test_a_named_map_a_mesh_lacks_gets_lightmap_uvs(fresh_scene, lmdp_ext):
+    """lightmap_uv_map names a map the mesh does not have: "LMDP Lightmap" is made and baked on,
+    and the warning names the missing map."""
+    build("CORNELL_BOX", lmdp_ext)
+    cubes = three_cubes()
+    result = bake(lmdp_ext, [cubes["Overlap"]], 2, lightmap_uv_map="Bake")
+    assert cubes["Overlap"].data.uv_layers.get(LIGHTMAP) is not None
+    assert any("no UV map named 'Bake'" in w for w in result.warnings), result.warnings
+    assert result.object("Overlap").n_texels > 0
+
+
 def test_run_all_creates_lightmap_uvs_before_it_samples(fresh_scene, lmdp_ext):
     """Run All (sample, build, solve, bake) gives the mesh without UVs its map and bakes it."""
     build("CORNELL_BOX", lmdp_ext)
