@@ -20,6 +20,8 @@ OUTPUT_FORMATS = ("EXR_FLOAT", "EXR_HALF", "HDR")
 #: An optional 8-bit copy next to it (``Settings.output_8bit``): none, PNG through the scene's
 #: view transform, or RGBM PNG (``bake/encoding.py``).
 OUTPUT_8BIT = ("NONE", "PNG", "RGBM")
+#: How each object's lightmap size is chosen: ``bake_resolution`` for all, or from ``texel_density``.
+RESOLUTION_MODES = ("FIXED", "DENSITY")
 
 
 @dataclass
@@ -53,6 +55,17 @@ class Settings:
     denoise: bool = False             #: OIDN per UV island (Blender layer), the raw image kept
     output_format: str = "EXR_FLOAT"  #: lightmap files: 'EXR_FLOAT', 'EXR_HALF' or 'HDR'
     output_8bit: str = "NONE"         #: extra 8-bit file: 'NONE', 'PNG' or 'RGBM'
+    # Lightmap layout (UV map, size per object, atlas)
+    lightmap_uv_map: str = ""         #: UV map the lightmaps are laid out on ('' = "LMDP Lightmap"
+                                      #: where a mesh has it, else its active render UV map)
+    auto_lightmap_uvs: bool = True    #: create "LMDP Lightmap" where the chosen map is missing,
+                                      #: overlaps, leaves [0, 1] or covers almost no texel
+    resolution_mode: str = "FIXED"    #: 'FIXED' (bake_resolution) or 'DENSITY' (texel_density)
+    texel_density: float = 32.0       #: DENSITY: texels per metre of surface
+    min_resolution: int = 16          #: DENSITY: smallest lightmap side (pixels)
+    max_resolution: int = 1024        #: DENSITY: largest lightmap side (pixels)
+    power_of_two: bool = True         #: DENSITY: round each side up to a power of two
+    atlas: bool = False               #: bake the objects into one shared lightmap image
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)

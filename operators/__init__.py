@@ -20,6 +20,7 @@ MODULE_NAMES = (
     "ops.policy",
     "ui.gizmos",
     "ops.bake",
+    "ops.lightmap_uvs",
 )
 
 _registered = []

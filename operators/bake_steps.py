@@ -41,6 +41,7 @@ from ..lmdp_addon.errors import SceneError
 from ..lmdp_addon.model import pipeline
 from .adapters.denoise import denoise_bake
 from .adapters.extract import extract_scene
+from .adapters.lightmap_uvs import prepare_lightmap_uvs
 from .adapters.lightmaps import prepare_output_folder, write_lightmaps
 from .adapters.materials import check_hook_up, hook_up as hook_up_materials
 from .common import selected_meshes
@@ -61,6 +62,7 @@ class BakeInputs:
     warnings: list = field(default_factory=list)
     keys: dict = field(default_factory=dict)  #: object name -> key (``name_full``)
     light_paths: object = None         #: the LightPaths the bake follows (None: settings.max_bounces)
+    uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
 
 
 @dataclass
@@ -73,6 +75,7 @@ class BakedLightmaps:
     solved: object = None              #: the LMDPResult compute_bake solved first (None: reused)
     names: tuple = ()                  #: the meshes that carry its states (every mesh with states)
     denoise: dict = field(default_factory=dict)  #: object name -> islands.DenoiseInput (denoise on)
+    uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
 
 
 def check_light_paths(light_paths):
@@ -133,7 +136,8 @@ def bake_inputs(context, settings, hook_up="NONE", light_paths=None):
     (``properties.bake_settings_from_scene``)."""
     path_warnings = check_light_paths(light_paths)
     meshes = selected_meshes(context)
-    scene = extract_scene(context, meshes)
+    uv_maps, uv_warnings = prepare_lightmap_uvs(context, meshes, settings, extract_scene)
+    scene = extract_scene(context, meshes, uv_maps=uv_maps)
     check_distinct_names(context, scene, meshes)
     names = [obj.name for obj in meshes]
     lmdp, solve = None, False
@@ -147,22 +151,25 @@ def bake_inputs(context, settings, hook_up="NONE", light_paths=None):
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
     return BakeInputs(scene=scene, plan=plan, lmdp=lmdp, solve=solve,
-                      warnings=path_warnings + list(scene.warnings) + list(plan.warnings),
-                      keys=object_keys(meshes), light_paths=light_paths)
+                      warnings=path_warnings + uv_warnings + list(scene.warnings) + list(plan.warnings),
+                      keys=object_keys(meshes), light_paths=light_paths, uv_maps=uv_maps)
 
 
-def planned_bake_inputs(context, scene, names, settings, hook_up="NONE", light_paths=None):
+def planned_bake_inputs(context, scene, names, settings, hook_up="NONE", light_paths=None, uv_maps=None,
+                        uv_warnings=()):
     """Main thread: the bake inputs of Run All, which has captured ``scene`` (the selected meshes
-    ``names``) and will sample, build and solve it before baking (it sets ``BakeInputs.lmdp`` to
-    that result). Checks everything the bake can check before the solution exists."""
+    ``names``, laid out on ``uv_maps``: :func:`.adapters.lightmap_uvs.prepare_lightmap_uvs`, whose
+    ``uv_warnings`` it passes on) and will sample, build and solve it before baking (it sets
+    ``BakeInputs.lmdp`` to that result). Checks everything the bake can check before the solution
+    exists."""
     path_warnings = check_light_paths(light_paths)
     meshes = [obj for obj in selected_meshes(context) if obj.name in set(names)]
     check_distinct_names(context, scene, meshes)
     plan = check_bake(scene, names, settings, will_solve=True, rasterise=False)
     prepare_output_folder(settings.output_dir)
     check_hook_up(meshes, hook_up)
-    return BakeInputs(scene=scene, plan=plan, warnings=path_warnings + list(plan.warnings),
-                      keys=object_keys(meshes), light_paths=light_paths)
+    return BakeInputs(scene=scene, plan=plan, warnings=path_warnings + list(uv_warnings) + list(plan.warnings),
+                      keys=object_keys(meshes), light_paths=light_paths, uv_maps=dict(uv_maps or {}))
 
 
 def check_bake_texels(inputs, progress):
@@ -199,10 +206,14 @@ def compute_bake(inputs, settings, progress):
     carriers = () if solved is None else tuple(np.asarray(solved.scene.object_names)[
         np.unique(solved.states.point_object)].tolist())
     prepared = {}
-    if settings.denoise:     # the islands laid out for the denoiser here, off the main thread
+    if settings.denoise and result.atlases:
+        result.warnings.append("Denoise is not applied to an atlas lightmap yet: bake without Atlas to "
+                               "denoise each object's lightmap")
+    elif settings.denoise:   # the islands laid out for the denoiser here, off the main thread
         prepared = {ob.name: denoise_input(inputs.scene, ob, settings.multiply_color) for ob in result.objects}
     return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths, solved=solved,
-                          names=carriers, denoise={k: v for k, v in prepared.items() if v is not None})
+                          names=carriers, denoise={k: v for k, v in prepared.items() if v is not None},
+                          uv_maps=dict(inputs.uv_maps))
 
 
 def _objects_by_key(keys):
@@ -234,11 +245,12 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
                         "'<lightmap>_raw'")
     images = write_lightmaps(result, output_dir, warnings, baked.keys, output_format=settings.output_format,
                              output_8bit=settings.output_8bit, view_scene=context.scene)
+    images = {ob.name: images[result.output_of(ob.name)] for ob in result.objects}   # atlas members share one
     gone = [name for name, obj in objects.items() if obj is None]
     if gone and hook_up != "NONE":
         warnings.append(f"{', '.join(gone)} no longer in the file: lightmap written, not hooked up")
     warnings += hook_up_materials([(objects[n], im) for n, im in images.items()
-                                    if objects.get(n) is not None], hook_up)
+                                    if objects.get(n) is not None], hook_up, baked.uv_maps)
     session = session_for(context.scene)
     if baked.solved is not None:             # the bake solved the LMDP first: keep it (Run All does)
         session.store_result(baked.solved, baked.names)

@@ -169,12 +169,14 @@ def report_error(operator, error):
 
 
 def report_warnings(operator, warnings, limit=5):
-    """Report each engine warning (``SceneArrays.warnings`` ...) as a WARNING, at most ``limit``."""
+    """Report each engine warning (``SceneArrays.warnings`` ...) as a WARNING, the first ``limit``
+    one by one and the rest in one last line (so none goes unnamed)."""
     warnings = list(warnings or ())
     for text in warnings[:limit]:
         operator.report({'WARNING'}, str(text))
     if len(warnings) > limit:
-        operator.report({'WARNING'}, f"... and {len(warnings) - limit} more warnings")
+        operator.report({'WARNING'}, f"... and {len(warnings) - limit} more warnings: "
+                                     + " | ".join(str(text) for text in warnings[limit:]))
 
 
 class WindowManagerProgress(Progress):

@@ -6,7 +6,8 @@ read them with :func:`settings_from_scene`, which returns the engine's plain ``S
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..lmdp_addon.settings import BAKE_MODES, COST_MODES, LIGHT_PATHS, SOLVERS, LightPaths, Settings
+from ..lmdp_addon.settings import (BAKE_MODES, COST_MODES, LIGHT_PATHS, RESOLUTION_MODES, SOLVERS, LightPaths,
+                                    Settings)
 
 _DEFAULTS = Settings()
 
@@ -70,6 +71,12 @@ OUTPUT_8BIT_ITEMS = (
      "8-bit RGBM PNG '<lightmap>_rgbm.png', linear: value = rgb x a x 7 (values up to 7 are kept; "
      "three.js RGBMLoader's default range)"),
 )
+RESOLUTION_MODE_ITEMS = (
+    ("FIXED", "Fixed", "Every lightmap is Resolution x Resolution pixels"),
+    ("DENSITY", "Texel Density",
+     "Each object's lightmap side from its surface area: Texel Density x sqrt(area / UV area), "
+     "clamped to Min / Max Resolution (optionally a power of two)"),
+)
 DISPLAY_QUANTITY_ITEMS = (
     ("Z", "Desirability z",
      "Desirability z (in PHYSICAL mode the outgoing radiance, W/sr/m^2), on a log colour scale"),
@@ -89,7 +96,8 @@ POLICY_SUBSET_ITEMS = (
 )
 
 for _items, _identifiers in ((COST_MODE_ITEMS, COST_MODES), (SOLVER_ITEMS, SOLVERS),
-                             (BAKE_MODE_ITEMS, BAKE_MODES), (LIGHT_PATHS_ITEMS, LIGHT_PATHS)):
+                             (BAKE_MODE_ITEMS, BAKE_MODES), (LIGHT_PATHS_ITEMS, LIGHT_PATHS),
+                             (RESOLUTION_MODE_ITEMS, RESOLUTION_MODES)):
     assert tuple(item[0] for item in _items) == tuple(_identifiers), "enum items out of sync with the engine"
 
 
@@ -235,6 +243,52 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         description="Also write an 8-bit PNG of each lightmap to the Output Folder, for engines "
                     "that cannot read float images",
         items=OUTPUT_8BIT_ITEMS, default=_DEFAULTS.output_8bit,
+    )
+    # -- Lightmap layout (UV map, size per object, atlas) --------------------------------------------
+    lightmap_uv_map: StringProperty(
+        name="Lightmap UV Map",
+        description="UV map the lightmaps are laid out on (and read through by the hook-up); empty: "
+                    "'LMDP Lightmap' where a mesh has it, else its active render UV map",
+        default=_DEFAULTS.lightmap_uv_map,
+    )
+    auto_lightmap_uvs: BoolProperty(
+        name="Auto Lightmap UVs",
+        description="Before baking, create the UV map 'LMDP Lightmap' (Smart UV Project + Pack Islands) on "
+                    "meshes whose lightmap UV map is missing, overlaps, leaves [0, 1] or has islands "
+                    "smaller than a texel; the other UV maps and the render UV map are not changed",
+        default=_DEFAULTS.auto_lightmap_uvs,
+    )
+    resolution_mode: EnumProperty(
+        name="Size",
+        description="How each object's lightmap size is chosen",
+        items=RESOLUTION_MODE_ITEMS, default=_DEFAULTS.resolution_mode,
+    )
+    texel_density: FloatProperty(
+        name="Texel Density",
+        description="Texel Density size: lightmap texels per metre of surface (texels/m)",
+        default=_DEFAULTS.texel_density, min=1e-3, max=1e5, soft_min=1.0, soft_max=1024.0,
+    )
+    min_resolution: IntProperty(
+        name="Min Resolution",
+        description="Texel Density size: smallest lightmap side (pixels)",
+        default=_DEFAULTS.min_resolution, min=1, max=16384, subtype='PIXEL',
+    )
+    max_resolution: IntProperty(
+        name="Max Resolution",
+        description="Texel Density size: largest lightmap side (pixels)",
+        default=_DEFAULTS.max_resolution, min=1, max=16384, subtype='PIXEL',
+    )
+    power_of_two: BoolProperty(
+        name="Power of Two",
+        description="Texel Density size: round each lightmap side up to a power of two (pixels)",
+        default=_DEFAULTS.power_of_two,
+    )
+    atlas: BoolProperty(
+        name="Atlas",
+        description="Bake the selected objects into one shared image 'LMDP Atlas_lmdp_indirect', each in its "
+                    "own region of its 'LMDP Lightmap' UV map (packed together); shared materials are hooked "
+                    "up through it",
+        default=_DEFAULTS.atlas,
     )
     # -- General ------------------------------------------------------------------------------------
     seed: IntProperty(

@@ -47,9 +47,10 @@ Run the LMDP pipeline (sample, build, solve, show, bake) on a .blend file, or on
 scene (--demo), and write the results into --output.
 
 Without --objects the states go on every visible mesh that can carry them: meshes without
-faces and meshes that emit light on every face are left out, and so, when the run bakes, are
-meshes without a UV map (they still occlude and reflect light); the script names each mesh it
-leaves out. --objects is only needed to choose other meshes."""
+faces and meshes that emit light on every face are left out, and so, when the run bakes with
+auto_lightmap_uvs off, are meshes without a UV map (they still occlude and reflect light; with
+it on, the default, the bake gives them the UV map "LMDP Lightmap"); the script names each mesh
+it leaves out. --objects is only needed to choose other meshes."""
 
 EXIT_STATUS = """\
 exit status:
@@ -104,10 +105,10 @@ def build_parser():
                         "--output (default: on with --demo, off for a .blend file)")
     parser.add_argument("--bake", action=argparse.BooleanOptionalAction, default=None,
                         help="bake the indirect light of the meshes that carry the states into "
-                        "--output (default: on; a mesh without UV map is left out of the default "
-                        "selection, and one named in --objects turns the bake off, which the script "
-                        "says; --bake refuses it instead; --no-bake also puts states on meshes "
-                        "without UV map)")
+                        "--output (default: on; with --set auto_lightmap_uvs=false a mesh without UV "
+                        "map is left out of the default selection, and one named in --objects turns "
+                        "the bake off, which the script says; --bake refuses it instead; --no-bake "
+                        "also puts states on meshes without UV map)")
     return parser
 
 

@@ -248,24 +248,28 @@ def named_objects(extension, text):
     return chosen, has_uv
 
 
-def default_objects(extension, bake):
+def default_objects(extension, bake, auto_uvs=False):
     """Every visible mesh of the view layer that can carry states and, unless --no-bake, has a
-    UV map when any mesh has one; returns ``(objects, has_uv, left_out)``, ``left_out[name]``
-    saying why a mesh was left out (printed, one line each)."""
+    UV map when any mesh has one (with ``auto_uvs``, scene.lmdp.auto_lightmap_uvs, every mesh
+    can be baked: the bake gives those without one the UV map "LMDP Lightmap"); returns
+    ``(objects, has_uv, left_out)``, ``left_out[name]`` saying why a mesh was left out (printed,
+    one line each)."""
     import bpy
     view_layer = bpy.context.view_layer
     meshes = [obj for obj in view_layer.objects if obj.type == 'MESH']
     hidden = {obj.name: hidden_reason(obj, view_layer) for obj in meshes}
     meshes = [obj for obj in meshes if hidden[obj.name] is None]
     problems, has_uv = mesh_facts(extension, meshes)
+    bakeable = {name: uv or auto_uvs for name, uv in has_uv.items()}
     capable = [obj for obj in meshes if obj.name not in problems]
     left_out = {name: why for name, why in hidden.items() if why} | problems
-    with_uv = [obj for obj in capable if has_uv[obj.name]]
+    with_uv = [obj for obj in capable if bakeable[obj.name]]
     if bake is not False and with_uv:
         for obj in capable:
-            if not has_uv[obj.name]:
+            if not bakeable[obj.name]:
                 left_out[obj.name] = ("has no UV map, so it cannot be baked (it still occludes and "
-                                      "reflects; add a UV map, or --no-bake puts states on it)")
+                                      "reflects; add a UV map, --set auto_lightmap_uvs=true gives it one, "
+                                      "or --no-bake puts states on it)")
         capable = with_uv
     elif bake and capable:
         names = ", ".join(sorted(obj.name for obj in capable))
@@ -285,14 +289,19 @@ def carrier_objects(args, extension):
     and whether to bake them; returns ``(objects, bake, left_out)``."""
     import bpy
     left_out = {}
+    auto_uvs = bool(getattr(bpy.context.scene.lmdp, "auto_lightmap_uvs", False))
     demo_choice = [o for o in bpy.context.selected_objects if o.type == 'MESH'] if args.demo else []
     if args.objects is not None:
         objects, has_uv = named_objects(extension, args.objects)
     elif demo_choice:
         objects, has_uv = demo_choice, mesh_facts(extension, demo_choice)[1]
     else:
-        objects, has_uv, left_out = default_objects(extension, args.bake)
+        objects, has_uv, left_out = default_objects(extension, args.bake, auto_uvs)
     no_uv = sorted(obj.name for obj in objects if not has_uv.get(obj.name))
+    if no_uv and auto_uvs and args.bake is not False:
+        print(f"[LMDP] {', '.join(no_uv)}: no UV map, the bake gives "
+              f"{'it' if len(no_uv) == 1 else 'them'} 'LMDP Lightmap' (auto_lightmap_uvs)", flush=True)
+        no_uv = []
     if no_uv and args.bake:
         it = "it" if len(no_uv) == 1 else "them"
         raise UsageError(f"--bake: {', '.join(no_uv)} ha{'s' if len(no_uv) == 1 else 've'} no UV map: "

@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import BudgetError, SceneError, StageOrderError
 from ..settings import BAKE_CONTENTS, BAKE_MODES, OUTPUT_8BIT, OUTPUT_FORMATS
 from .memory import estimate_bake_bytes
+from .resolution import check_resolution_settings, object_resolutions
 from .texels import rasterize_texels, texel_count_bound
 
 #: Most texels (summed over objects) whose rasterisation a :class:`BakePlan` keeps for the bake:
@@ -31,7 +32,10 @@ class BakePlan:
 
     names       object names to bake, in order
     indices     their object indices in the scene
-    resolution  the lightmaps' R (``settings.bake_resolution``) the texels are for
+    resolution  ``settings.bake_resolution``
+    resolutions object index -> the side R of its lightmap (``resolution.object_resolutions``:
+                ``bake_resolution``, or from the texel density), which its texels are for
+    atlas       True: the objects share one image (``settings.atlas``), their UVs must not overlap
     texels      object index -> ``(TexelSet, triangles (T_o,))`` (:func:`object_texels`) of the
                 objects the check rasterised, up to :data:`TEXEL_CACHE_LIMIT` texels in all
     warnings    messages for the user (the bake goes on)
@@ -49,6 +53,12 @@ class BakePlan:
     memory_bytes: int = 0
     texels_checked: bool = True
     texel_warnings: list = field(default_factory=list)   #: what the texel checks said (objects left out)
+    resolutions: dict = field(default_factory=dict)
+    atlas: bool = False
+
+    def resolution_of(self, index):
+        """The lightmap side R of object ``index``."""
+        return int(self.resolutions.get(index, self.resolution))
 
 
 def object_index(scene, name):
@@ -145,11 +155,14 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
     indices = [object_index(scene, n) for n in names]
     no_uv = [n for n, i in zip(names, indices) if not scene.object_has_uv[i]]
     if no_uv:
-        raise SceneError(f"No UV map on {', '.join(no_uv)}: add one (UV > Smart UV Project or "
-                         "Lightmap Pack) or deselect them; the lightmap is laid out by the UV map")
-    _check_uv_values(scene, names, indices, R)
-    memory = check_bake_memory(scene, names, indices, settings)
-    texels, skipped = _check_texels(scene, names, indices, R) if rasterise else ({}, [])
+        raise SceneError(f"No UV map on {', '.join(no_uv)}: add one (LMDP > Bake > Create Lightmap UVs, "
+                         "or turn on Auto Lightmap UVs) or deselect them; the lightmap is laid out by "
+                         "the UV map")
+    atlas = bool(getattr(settings, "atlas", False)) and len(names) > 1
+    resolutions = object_resolutions(scene, indices, settings, atlas=atlas)
+    _check_uv_values(scene, names, indices, resolutions)
+    memory = check_bake_memory(scene, names, indices, settings, resolutions)
+    texels, skipped = _check_texels(scene, names, indices, resolutions, atlas=atlas) if rasterise else ({}, [])
     if not scene.has_light():
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
                          "shader or Principled emission), a light (point, spot, sun or area), or a "
@@ -159,7 +172,8 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
                         "the optimal policy is zero; a value below 1 keeps it unbiased")
     plan = BakePlan(names=names, indices=indices, resolution=R, texels=texels, warnings=warnings,
-                    memory_bytes=memory, texels_checked=bool(rasterise))
+                    memory_bytes=memory, texels_checked=bool(rasterise), resolutions=resolutions,
+                    atlas=atlas)
     _leave_out(plan, skipped)
     return plan
 
@@ -173,11 +187,15 @@ def check_texels(scene, plan, progress=None):
     if not plan.texels_checked:
         if progress is not None:
             progress.begin("texels")
-        plan.texels, skipped = _check_texels(scene, plan.names, plan.indices, plan.resolution, progress)
+        resolutions = {i: plan.resolution_of(i) for i in plan.indices}
+        plan.texels, skipped = _check_texels(scene, plan.names, plan.indices, resolutions, progress,
+                                             atlas=plan.atlas)
         plan.texels_checked = True
         _leave_out(plan, skipped)
         if progress is not None:
-            progress.end(f"{len(plan.names)} object(s) rasterised at {plan.resolution} x {plan.resolution}")
+            sizes = sorted({plan.resolution_of(i) for i in plan.indices})
+            progress.end(f"{len(plan.names)} object(s) rasterised at "
+                         f"{' / '.join(f'{r} x {r}' for r in sizes) or 'no size'}")
     return plan
 
 
@@ -191,8 +209,8 @@ def _leave_out(plan, skipped):
     plan.names = [plan.names[k] for k in keep]
     plan.indices = [plan.indices[k] for k in keep]
     plan.texel_warnings.append(
-        f"Not baked, their UV maps cover no texel centre of the {plan.resolution} x "
-        f"{plan.resolution} lightmap: " + "; ".join(f"{n} ({why})" for n, why in skipped))
+        "Not baked, their UV maps cover no texel centre of their lightmap: "
+        + "; ".join(f"{n} ({why})" for n, why in skipped))
 
 
 def _check_settings(settings, names):
@@ -212,20 +230,26 @@ def _check_settings(settings, names):
         raise SceneError(f"Bake samples must be at least 1 (got {settings.bake_samples}): set LMDP > Bake > Samples")
     if int(settings.max_bounces) < 1:
         raise SceneError(f"Max bounces must be at least 1 for indirect light (got {settings.max_bounces})")
+    check_resolution_settings(settings)
     if not names:
         raise SceneError("Select at least one mesh object to bake")
     return R
 
 
-def _check_texels(scene, names, indices, R, progress=None):
-    """Rasterise every object once. Overlapping UVs are errors, and so is a bake in which no
-    object covers a texel centre; objects that cover none while others do are returned to be left
-    out. Returns ``(texels kept for the bake (:data:`TEXEL_CACHE_LIMIT`), [(name, reason)])``."""
+def _check_texels(scene, names, indices, resolutions, progress=None, atlas=False):
+    """Rasterise every object once, object ``i`` at ``resolutions[i]``. Overlapping UVs are
+    errors, and so is a bake in which no object covers a texel centre; objects that cover none
+    while others do are returned to be left out. With ``atlas`` (one shared image) two objects
+    covering the same texel are an error too. Returns ``(texels kept for the bake
+    (:data:`TEXEL_CACHE_LIMIT`), [(name, reason)])``."""
     texels, kept = {}, 0
     empty, overlapping = [], []
+    owner = {}   # atlas: which object covers each texel of the shared image (_atlas_clashes)
+    shared = []
     for k, (n, i) in enumerate(zip(names, indices)):
         if progress is not None:
             progress.update(k / len(names), f"texels of {n}")
+        R = int(resolutions[i])
         found = object_texels(scene, i, R)
         ts, _ = found
         if kept + len(ts) <= TEXEL_CACHE_LIMIT:
@@ -235,15 +259,42 @@ def _check_texels(scene, names, indices, R, progress=None):
         if len(ts) == 0:
             empty.append((n, _why_no_texel(scene, i, R)))
         elif count:
-            overlapping.append(f"{n} ({count} texels, e.g. column {example[1]}, row {example[0]})")
+            overlapping.append(f"{n} ({count} texels of its {R} x {R} lightmap, e.g. column {example[1]}, "
+                               f"row {example[0]})")
+        if atlas and len(ts):
+            shared += _atlas_clashes(owner, names, n, ts)
     if empty and len(empty) == len(names):
         raise SceneError(f"The UV map of {'; '.join(f'{n} ({why})' for n, why in empty)} covers no "
-                         f"texel centre of a {R} x {R} image: nothing to bake")
+                         "texel centre of its lightmap: nothing to bake")
     if overlapping:
         raise SceneError(f"Overlapping UVs on {'; '.join(overlapping)}: several faces share these "
-                         f"texels of the {R} x {R} lightmap. Give each face its own area "
-                         "(UV > Lightmap Pack, or Smart UV Project) and bake again")
+                         "texels. Give each face its own area (LMDP > Bake > Create Lightmap UVs, or "
+                         "UV > Lightmap Pack) and bake again")
+    if shared:
+        raise SceneError(f"The atlas's objects overlap in its {int(resolutions[indices[0]])} x "
+                         f"{int(resolutions[indices[0]])} image: {'; '.join(shared)}. Pack their lightmap "
+                         "UVs together (LMDP > Bake > Create Lightmap UVs with Atlas on) and bake again")
     return texels, empty
+
+
+def _atlas_clashes(owner, names, name, ts):
+    """Texels of ``ts`` (object ``name``) that another object of the atlas covers already:
+    one message per such object. ``owner`` {'image': (R*R,) int32 image of the index into
+    ``names`` of the first object covering each texel, -1: none} is updated in place."""
+    R = ts.resolution
+    if "image" not in owner:
+        owner["image"] = np.full(R * R, -1, np.int32)
+    image = owner["image"]
+    flat = ts.flat_index
+    first = image[flat]
+    hit = first >= 0
+    clashes = []
+    for other in np.unique(first[hit]):
+        where = flat[first == other]
+        clashes.append(f"{name} and {names[other]} share {len(where)} texel(s), e.g. column "
+                       f"{int(where[0] % R)}, row {int(where[0] // R)}")
+    image[flat[~hit]] = names.index(name)
+    return clashes
 
 
 def _why_no_texel(scene, index, R):
@@ -255,12 +306,13 @@ def _why_no_texel(scene, index, R):
     return "UVs outside [0, 1] or degenerate: unwrap into the unit square"
 
 
-def _check_uv_values(scene, names, indices, R):
+def _check_uv_values(scene, names, indices, resolutions):
     """Objects whose UV maps hold non-finite or huge coordinates are errors: the faces could not
     be placed on the lightmap (Inf / NaN cover nothing, huge values a strip across the image)."""
     found = []
+    R = max((int(resolutions[i]) for i in indices), default=1)
     for n, i in zip(names, indices):
-        bad = bad_uv_faces(scene, i, R)
+        bad = bad_uv_faces(scene, i, int(resolutions[i]))
         if len(bad):
             uv = scene.triangle_uv[bad[0]]
             found.append(f"'{n}' ({len(bad)} triangle{'s' if len(bad) > 1 else ''}, e.g. one with UV "
@@ -272,16 +324,17 @@ def _check_uv_values(scene, names, indices, R):
                          "Project) and bake again")
 
 
-def check_bake_memory(scene, names, indices, settings):
+def check_bake_memory(scene, names, indices, settings, resolutions=None):
     """The bake's estimated peak memory (bytes, ``memory.estimate_bake_bytes``) from an upper
-    bound on each object's texels (``texels.texel_count_bound``: no rasterisation); raises
+    bound on each object's texels (``texels.texel_count_bound``: no rasterisation) at its
+    resolution (``resolutions``: object index -> R, default ``bake_resolution``); raises
     :class:`BudgetError` when it exceeds ``settings.memory_budget_gb``."""
     from .driver import PATHS_PER_UNIT, bake_threads   # the driver imports this module
-    R = int(settings.bake_resolution)
-    counts = [texel_count_bound(scene.triangle_uv[(scene.triangle_object == i) & scene.usable_triangles()], R)
-              for i in indices]
-    need = estimate_bake_bytes(counts, R, int(settings.bake_samples), scene.n_triangles,
-                               bake_threads(),
+    sides = [int((resolutions or {}).get(i, settings.bake_resolution)) for i in indices]
+    R = max(sides, default=int(settings.bake_resolution))
+    counts = [texel_count_bound(scene.triangle_uv[(scene.triangle_object == i) & scene.usable_triangles()], r)
+              for i, r in zip(indices, sides)]
+    need = estimate_bake_bytes(counts, sides, int(settings.bake_samples), scene.n_triangles, bake_threads(),
                                PATHS_PER_UNIT)
     budget = settings.memory_budget_gb
     if budget is not None and need > float(budget) * 1024 ** 3:
@@ -342,3 +395,53 @@ def _check_solution(scene, names, settings, lmdp, will_solve):
         warnings.append(f"No states on {', '.join(unguided)}: their texels start with cosine "
                         "sampling (select them when sampling to guide them too)")
     return warnings
+
+
+# ---- Whether a UV map can hold a lightmap -------------------------------------------------------------
+
+#: A UV map whose covered texel centres are fewer than this share of the texels its UV area
+#: holds is made of islands too small for the lightmap (most of them cover no texel centre).
+MIN_COVERED_SHARE = 0.25
+#: Tolerance of the unit square (UV units) before a coordinate counts as outside [0, 1].
+UV_RANGE_TOLERANCE = 1e-6
+
+
+def lightmap_uv_problems(scene, names, indices, resolutions, atlas=False):
+    """{object name: why its UV map cannot hold its lightmap} for the objects ``names``
+    (``indices``, object ``i`` at side ``resolutions[i]``): no UV map; non-finite or huge UVs;
+    UVs outside [0, 1] (those faces get no texels); texel centres covered by two of its
+    triangles (overlapping UVs, texel-level: ``TexelSet.overlap``); no texel centre covered, or
+    fewer than :data:`MIN_COVERED_SHARE` of those its UV area holds (islands smaller than a
+    texel); with ``atlas``, texels another object of the atlas covers. Objects not named are fine."""
+    problems = {}
+    owner, atlas_names = {}, list(names)
+    for n, i in zip(names, indices):
+        R = int(resolutions[i])
+        if not scene.object_has_uv[i]:
+            problems[n] = "it has no UV map"
+            continue
+        if len(bad_uv_faces(scene, i, R)):
+            problems[n] = "its UV map has non-finite or huge coordinates"
+            continue
+        tris = np.flatnonzero((scene.triangle_object == i) & scene.usable_triangles())
+        uv = scene.triangle_uv[tris]
+        if np.any((uv < -UV_RANGE_TOLERANCE) | (uv > 1.0 + UV_RANGE_TOLERANCE)):
+            problems[n] = "its UV map reaches outside [0, 1]"
+            continue
+        found = object_texels(scene, i, R)
+        ts, _ = found
+        count, _ = uv_overlaps(scene, i, R, found)
+        if count:
+            problems[n] = f"its UV map overlaps itself on {count} texel(s) of the {R} x {R} lightmap"
+            continue
+        e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+        holds = 0.5 * float(np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()) * R * R
+        if len(ts) == 0 or len(ts) < MIN_COVERED_SHARE * holds:
+            problems[n] = (f"its UV islands are too small for a {R} x {R} lightmap ({len(ts)} texel "
+                           f"centre(s) covered of about {holds:.0f} their area holds)")
+            continue
+        if atlas:
+            clash = _atlas_clashes(owner, atlas_names, n, ts)
+            if clash:
+                problems[n] = "in the atlas, " + "; ".join(clash)
+    return problems

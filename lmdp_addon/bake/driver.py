@@ -40,13 +40,13 @@ from .content import BakeContent
 from .gather import build_gather
 from .guide import build_guide
 from .residual import ControlVariate
-from .results import IMAGE_SUFFIX, BakeResult, ObjectBake
+from .results import ATLAS_NAME, IMAGE_SUFFIX, AtlasBake, BakeResult, ObjectBake
 from .texels import dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
 
 # The operators read BakeResult, ObjectBake and IMAGE_SUFFIX here.
-__all__ = ["bake", "bake_object", "make_tracer", "work_units", "batch_count", "bake_threads", "PATHS_PER_UNIT",
-           "BAKE_THREADS", "MIN_UNITS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
+__all__ = ["bake", "bake_object", "compose_atlas", "make_tracer", "work_units", "batch_count", "bake_threads",
+           "PATHS_PER_UNIT", "BAKE_THREADS", "MIN_UNITS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
 
 #: Most paths traced by one work unit (memory: ~0.5 KiB per path in flight, so ~64 MiB per
 #: unit). Larger units amortise the per-bounce Python overhead of the wavefront loop.
@@ -116,14 +116,15 @@ def work_units(n_texels, batches, per_batch):
 # ---- the bake of one object -------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
-                threads=None, texels=None):
-    """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``texels``: its
-    ``(TexelSet, triangles)`` at ``settings.bake_resolution`` if the caller has them
-    (``BakePlan.texels``), else they are rasterised here."""
+                threads=None, texels=None, resolution=None):
+    """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``resolution``:
+    its lightmap side R (default ``settings.bake_resolution``; ``BakePlan.resolution_of``);
+    ``texels``: its ``(TexelSet, triangles)`` at R if the caller has them (``BakePlan.texels``),
+    else they are rasterised here. ``threads``: default :func:`bake_threads`."""
     t0 = time.perf_counter()
     progress = progress if progress is not None else Progress()
     index = object_index(scene, name)
-    R = int(settings.bake_resolution)
+    R = int(resolution if resolution is not None else settings.bake_resolution)
     N = int(settings.bake_samples)
     ts, tris = texels if texels is not None else object_texels(scene, index, R)
     threads = bake_threads() if threads is None else int(threads)
@@ -302,18 +303,45 @@ def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, p
     t0 = time.perf_counter()
     tracer, guide, info = make_tracer(scene, settings, lmdp)
     setup = time.perf_counter() - t0
-    texels = plan.texels if plan.resolution == int(settings.bake_resolution) else {}
+    same = plan.resolution == int(settings.bake_resolution)
+    texels = plan.texels if same else {}
     objects = []
     for number, name in enumerate(names):
         progress.begin(f"bake {name}")
+        index = object_index(scene, name)
         ob = bake_object(tracer, scene, name, settings, object_number=number, guide=guide,
-                         progress=progress, threads=threads, texels=texels.get(object_index(scene, name)))
+                         progress=progress, threads=threads, texels=texels.get(index),
+                         resolution=plan.resolution_of(index) if same else None)
         progress.end(f"{ob.n_texels} texels, {ob.stats.total_rays} rays in {ob.seconds:.2f} s "
                      f"({ob.stats.total_rays / max(ob.seconds, 1e-9) / 1e6:.2f} Mrays/s)")
         objects.append(ob)
+    atlases = [compose_atlas(ATLAS_NAME, objects, int(settings.bake_margin))] if plan.atlas and objects else []
     seconds = dict(precompute_seconds or {})
     seconds["bake_setup"] = setup
     seconds["bake"] = time.perf_counter() - t0
     return BakeResult(mode=settings.bake_mode, objects=objects, settings=settings.as_dict(),
                       seconds=seconds, warnings=list(plan.warnings) + list(plan.texel_warnings),
-                      guide_info=info)
+                      guide_info=info, atlases=atlases)
+
+
+def compose_atlas(name, objects, margin):
+    """One shared lightmap of ``objects`` (``ObjectBake`` at one resolution, covering disjoint
+    texels: ``checks`` refuses an atlas whose objects overlap): every object's texels in its
+    region of the image, the margin around all of them filled at once (``texels.dilate``), so
+    no object's margin covers another's texels. Each object's ``image`` becomes that shared
+    image and its ``atlas`` the atlas's name; returns the :class:`AtlasBake`."""
+    R = objects[0].resolution
+    rgb = np.zeros((R, R, 3), np.float32)
+    covered = np.zeros((R, R), bool)
+    for ob in objects:
+        rgb[ob.texels.row, ob.texels.col] = ob.value
+        covered[ob.texels.row, ob.texels.col] = True
+    image = np.zeros((R, R, 4), np.float32)
+    if covered.any():
+        filled_rgb, filled = dilate(rgb, covered, int(margin), return_mask=True)
+        image[..., :3] = filled_rgb
+        image[..., 3] = filled.astype(np.float32)
+    for ob in objects:
+        ob.image = image
+        ob.atlas = name
+    return AtlasBake(name=name, members=[ob.name for ob in objects], image=image)

@@ -42,11 +42,12 @@ FIXED_BYTES = 64 * 1024 ** 2
 
 def estimate_bake_bytes(texel_counts, resolution, samples, n_triangles, threads, paths_per_unit):
     """Peak memory of a bake (bytes, module docstring) of objects with ``texel_counts`` texels
-    each at ``resolution`` and ``samples`` paths per texel, in a scene of ``n_triangles``, with
+    each at ``resolution`` (one side for all, or one per object) and ``samples`` paths per texel, in a scene of ``n_triangles``, with
     ``threads`` work units of at most ``paths_per_unit`` paths in flight."""
     counts = [int(n) for n in texel_counts]
-    pixels = int(resolution) ** 2
-    kept = sum(RESULT_BYTES_PER_TEXEL * n + RESULT_BYTES_PER_PIXEL * pixels for n in counts)
+    sides = [int(r) for r in resolution] if hasattr(resolution, "__len__") else [int(resolution)] * len(counts)
+    pixels = max(sides, default=0) ** 2
+    kept = sum(RESULT_BYTES_PER_TEXEL * n + RESULT_BYTES_PER_PIXEL * r * r for n, r in zip(counts, sides))
     n = max(counts, default=0)
     working = max(RASTER_BYTES_PER_TEXEL * n + CANDIDATE_BYTES * min(MAX_CANDIDATES, 4 * n + 1),
                   TRACE_BYTES_PER_TEXEL * n + int(threads) * min(int(paths_per_unit), n * int(samples)) * PATH_BYTES,

@@ -11,6 +11,9 @@ from .tracer import TraceStats
 IMAGE_SUFFIX = "_lmdp_indirect"
 #: Added to the image (and file) name of the raw lightmap a denoised bake keeps.
 RAW_SUFFIX = "_raw"
+#: Name of the shared lightmap of an atlas bake (``Settings.atlas``); its image is
+#: ``ATLAS_NAME + IMAGE_SUFFIX``.
+ATLAS_NAME = "LMDP Atlas"
 
 
 @dataclass
@@ -24,6 +27,7 @@ class ObjectBake:
                     E_ind/π, (E_dir + E_ind)/π, either times ρ; W / sr m²), as path traced
     standard_error  (n, 3) float32 standard error of ``value`` from the batch means (NaN for 1 batch)
     image           (R, R, 4) float32 RGBA, margin filled, alpha 1 where filled; row 0 = bottom
+                    (of an atlas member: the atlas's shared image)
     samples         paths per texel; batches: independent batches they were split into
     stats           :class:`~lmdp_addon.bake.tracer.TraceStats`
     seconds         wall time of this object's bake
@@ -43,10 +47,11 @@ class ObjectBake:
     seconds: float
     raw_image: np.ndarray = None
     denoised_value: np.ndarray = None
+    atlas: str = ""                 #: the atlas whose shared image holds this lightmap ('' = its own)
 
     @property
     def image_name(self):
-        return self.name + IMAGE_SUFFIX
+        return (self.atlas or self.name) + IMAGE_SUFFIX
 
     @property
     def raw_image_name(self):
@@ -63,6 +68,24 @@ class ObjectBake:
 
 
 @dataclass
+class AtlasBake:
+    """The shared lightmap of several objects (``Settings.atlas``): ``image`` (R, R, 4) holds
+    each member's texels in its own region (``driver.compose_atlas``)."""
+
+    name: str
+    members: list                   #: names of the objects whose texels it holds
+    image: np.ndarray
+
+    @property
+    def image_name(self):
+        return self.name + IMAGE_SUFFIX
+
+    @property
+    def resolution(self):
+        return self.image.shape[0]
+
+
+@dataclass
 class BakeResult:
     """Lightmaps of the baked objects plus what produced them (``bake_stats.json``)."""
 
@@ -74,6 +97,16 @@ class BakeResult:
     guide_info: dict = field(default_factory=dict)
     #: ``LightPaths.as_dict()`` of the path length used (empty: ``settings['max_bounces']``, CUSTOM)
     light_paths: dict = field(default_factory=dict)
+    atlases: list = field(default_factory=list)   #: :class:`AtlasBake` of an atlas bake
+
+    def outputs(self):
+        """The images to write: each object that has its own (``ObjectBake``), then each atlas
+        (``AtlasBake``); both have ``name``, ``image_name``, ``resolution`` and ``image``."""
+        return [o for o in self.objects if not o.atlas] + list(self.atlases)
+
+    def output_of(self, name):
+        """The name of the output (object or atlas) whose image holds object ``name``'s lightmap."""
+        return self.object(name).atlas or name
 
     @property
     def n_texels(self):
@@ -99,6 +132,7 @@ class BakeResult:
             objects[o.name] = {
                 "image": o.image_name,
                 "resolution": o.resolution,
+                "atlas": o.atlas or None,
                 "texels": o.n_texels,
                 "samples": o.samples,
                 "batches": o.batches,
@@ -120,6 +154,8 @@ class BakeResult:
             "guide": dict(self.guide_info),
             "light_paths": dict(self.light_paths) or LightPaths.custom(self.settings.get("max_bounces", 0)).as_dict(),
             "objects": objects,
+            "atlases": {a.name: {"image": a.image_name, "resolution": a.resolution, "objects": list(a.members)}
+                        for a in self.atlases},
             "warnings": list(self.warnings),
         }
 

@@ -2,8 +2,9 @@
 
 :func:`extract_scene` reads every visible mesh of the view layer from the evaluated depsgraph
 (modifiers and geometry nodes applied, instances included, world space), its triangles, the
-active render UV map, and one diffuse albedo / emitted radiance per triangle from the material of
-its polygon, plus Blender's lights (point, spot, sun and area lights as lamps) and the world background.
+lightmap's UV map (``scene.lmdp.lightmap_uv_map``, :mod:`.lightmap_uvs`), and one diffuse albedo /
+emitted radiance per triangle from the material of its polygon, plus Blender's lights (point,
+spot, sun and area lights as lamps) and the world background.
 Conventions follow Cycles as measured in docs/cycles_conventions.md:
 
 * Emission shader: radiance = Color x Strength, two-sided. Principled BSDF: Base Color is the
@@ -39,6 +40,7 @@ import numpy as np
 from ...lmdp_addon.lamps import AREA, POINT, SPOT, SUN, Lamps
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
+from .lightmap_uvs import chosen_uv_name
 from .materials import NODE_MULTIPLY, slot_materials
 from .world_capture import WorldReader
 
@@ -289,11 +291,10 @@ def _mesh_arrays(mesh, matrix):
     return world, verts.reshape(-1, 3).astype(np.int64), loops.reshape(-1, 3), poly
 
 
-def _render_uv(mesh, loops):
-    """(T, 3, 2) UVs of the active render UV map, or None when the mesh has no UV map."""
-    layer = next((l for l in mesh.uv_layers if l.active_render), None)
-    if layer is None:
-        layer = mesh.uv_layers.active
+def _render_uv(mesh, loops, name=None):
+    """(T, 3, 2) UVs of the UV map ``name`` (the lightmap's, :func:`.lightmap_uvs.chosen_uv_name`),
+    or None when the mesh has no such map."""
+    layer = mesh.uv_layers.get(name) if name else None
     if layer is None or len(loops) == 0:
         return None
     uv = np.empty(len(mesh.loops) * 2, dtype=np.float32)
@@ -558,8 +559,9 @@ def _shadow_flag_warning(name, obj, warnings):
                         "it casts shadows in the bake")
 
 
-def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
-    """The evaluated mesh of ``inst`` in world space, with its materials and render UV map;
+def _add_mesh(builder, name, inst, fingerprint, reader, warnings, uv_choice=("", None)):
+    """The evaluated mesh of ``inst`` in world space, with its materials and lightmap UV map
+    (``uv_choice``: (``scene.lmdp.lightmap_uv_map``, {object name: UV map} that overrides it));
     returns False when it has no faces. ``fingerprint``: the object's :func:`object_fingerprint`
     when it carries states, else None. Objects in Edit Mode are read from their edit mesh
     (``to_mesh``): the evaluated mesh of an object in Edit Mode holds no faces of its own."""
@@ -580,7 +582,7 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
             # Mirrored objects: Cycles keeps their normals as displayed, so flip the winding.
             tris = tris[:, [0, 2, 1]]
             loops = loops[:, [0, 2, 1]]
-        uv = _render_uv(mesh, loops)
+        uv = _render_uv(mesh, loops, (uv_choice[1] or {}).get(name) or chosen_uv_name(mesh, uv_choice[0]))
         corner_normals = _corner_normals(mesh, matrix, loops)
         if uv is None and carries_states:
             warnings.append(f"Object '{name}' has no UV map")
@@ -601,7 +603,7 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
             obj.to_mesh_clear()
 
 
-def extract_scene(context, selected_objects, depsgraph=None):
+def extract_scene(context, selected_objects, depsgraph=None, uv_maps=None):
     """:class:`CapturedScene` of every visible mesh and light in ``context``'s view layer.
 
     ``selected_objects``: the objects whose meshes carry LMDP states (originals or evaluated,
@@ -610,7 +612,8 @@ def extract_scene(context, selected_objects, depsgraph=None):
     objects that turn out to have no faces are named in the warnings. ``depsgraph`` defaults to
     ``context.evaluated_depsgraph_get()``. Hidden objects (eye, monitor or camera icon off, or
     not visible in the view layer) are ignored. Object names of instances are
-    "<instancer>/<object>#<n>".
+    "<instancer>/<object>#<n>". The UV map of a mesh is the lightmap's (``uv_maps``: {object
+    name: UV map name}, else :func:`.lightmap_uvs.chosen_uv_name` of ``scene.lmdp.lightmap_uv_map``).
     """
     selected = {o.session_uid: o for o in (getattr(o, "original", o) for o in selected_objects or ())}
     # Before the depsgraph is evaluated: fingerprints update objects in Edit Mode from their edit mesh.
@@ -623,6 +626,7 @@ def extract_scene(context, selected_objects, depsgraph=None):
     builder = _SceneBuilder()
     instance_count = {}
     skipped_lights = []
+    uv_choice = (getattr(getattr(depsgraph.scene, "lmdp", None), "lightmap_uv_map", ""), uv_maps)
     captured = set()
     for inst in depsgraph.object_instances:
         obj = inst.object
@@ -639,7 +643,7 @@ def extract_scene(context, selected_objects, depsgraph=None):
             _add_light(builder, name, inst, warnings, skipped_lights)
         elif obj.type in GEOMETRY_TYPES:
             _shadow_flag_warning(name, obj, warnings)
-            if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings):
+            if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings, uv_choice):
                 captured.add(top.session_uid)
             if not inst.is_instance and mode_holding_mesh(obj.original) == "Sculpt Mode with Dynamic Topology":
                 warnings.append(f"Object '{name}' is in Sculpt Mode with Dynamic Topology, whose strokes "

@@ -96,10 +96,11 @@ def _users_occlusion(tree):
                 None)
 
 
-def hook_gltf(obj, image, materials, warnings):
+def hook_gltf(obj, image, materials, warnings, uv_map=None):
     """Wire ``image`` into the glTF occlusion of each of ``materials`` (``obj``'s own, unshared
-    materials); appends to ``warnings`` why one was left alone."""
-    uv_map = baked_uv_map(obj)
+    materials), read through ``uv_map`` (None: the render UV map, :func:`baked_uv_map`); appends
+    to ``warnings`` why one was left alone."""
+    uv_map = uv_map or baked_uv_map(obj)
     for mat in materials:
         tree = mat.node_tree
         if tree is None:

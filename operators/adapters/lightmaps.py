@@ -400,10 +400,15 @@ def _stats_payload(result, files, companions, key_of, owned, folder, output_form
     written = {}
     for ob in result.objects:
         entry = stats["objects"][ob.name]
-        entry["file"] = files[ob.name]
-        written[files[ob.name]] = key_of(ob)
-        for part, name in companions.get(ob.name, {}).items():
+        out = result.output_of(ob.name)
+        entry["file"] = files[out]
+        for part, name in companions.get(out, {}).items():
             entry[{"raw": "raw_file", "png": "png_file", "rgbm": "rgbm_file"}[_part_kind(part)]] = name
+    for atlas in result.atlases:
+        stats["atlases"][atlas.name]["file"] = files[atlas.name]
+    for ob in result.outputs():
+        written[files[ob.name]] = key_of(ob)
+        for name in companions.get(ob.name, {}).values():
             written[name] = key_of(ob)
     kept = {f: k for f, k in owned.items() if os.path.lexists(os.path.join(folder, f))}
     stats["files"] = {**kept, **written}
@@ -423,9 +428,10 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
                     view_scene=None):
     """Main thread: the lightmaps of ``result`` (a ``BakeResult``) into the add-on's images and,
     with ``output_dir`` (absolute, from :func:`prepare_output_folder`), its files; ``keys`` maps
-    an object name to the object's key (default: the name). Returns ``{object name: image}`` and
-    appends to ``warnings``. Raises ``SceneError`` (nothing changed) if the files cannot be
-    written.
+    an object name to the object's key (default: the name; an atlas's key is its name). One image
+    per output (``BakeResult.outputs``: an object's own lightmap, or an atlas shared by its
+    objects). Returns ``{output name: image}`` and appends to ``warnings``. Raises
+    ``SceneError`` (nothing changed) if the files cannot be written.
 
     ``output_format`` (:data:`FORMATS`): the file each image is loaded from. ``output_8bit``:
     'PNG' also writes ``<stem>_srgb.png`` through ``view_scene``'s view transform (the scene's Color
@@ -441,16 +447,17 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
         raise SceneError(f"Unknown Output Format {output_format!r}: use one of {', '.join(FORMATS)}")
     extension = FORMATS[output_format][0]
     files, companions, stats = {}, {}, None
+    outputs = result.outputs()
     if output_dir:
         owned = owned_files(output_dir, read_stats(output_dir))
-        files = assign_files(result.objects, key_of, output_dir, owned, warnings, extension)
-        for ob in result.objects:
-            parts = [(RAW_PART, extension)] if ob.raw_image is not None else []
+        files = assign_files(outputs, key_of, output_dir, owned, warnings, extension)
+        for ob in outputs:
+            parts = [(RAW_PART, extension)] if _raw(ob) is not None else []
             parts += {"PNG": [(PNG_PART, ".png")], "RGBM": [(RGBM_PART, ".png")]}.get(output_8bit, [])
             companions[ob.name] = companion_files(output_dir, files[ob.name], owned, extension, parts, warnings)
         stats = _stats_payload(result, files, companions, key_of, owned, output_dir, output_format, output_8bit)
         if output_8bit == "RGBM":
-            clipped = [ob.name for ob in result.objects if ob.image[..., :3].max(initial=0.0) > RGBM_RANGE]
+            clipped = [ob.name for ob in outputs if ob.image[..., :3].max(initial=0.0) > RGBM_RANGE]
             if clipped:
                 warnings.append(f"The RGBM copies of {', '.join(clipped)} clip values above {RGBM_RANGE:g} "
                                 "(the lightmap files keep them)")
@@ -459,11 +466,11 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
     saver, moves = _Saver(view_scene), []
     try:
         if output_dir:
-            for ob in result.objects:
+            for ob in outputs:
                 jobs = [(ob.image, finals[ob.name], output_format)]
                 for part, name in companions[ob.name].items():
                     kind = _part_kind(part)
-                    pixels = ob.raw_image if kind == "raw" else ob.image
+                    pixels = _raw(ob) if kind == "raw" else ob.image
                     jobs.append((pixels, os.path.join(output_dir, name),
                                  output_format if kind == "raw" else kind.upper()))
                 for pixels, final, kind in jobs:
@@ -481,9 +488,11 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
         for temporary, _ in moves:
             _remove_quietly(temporary)
     images = {}
-    for ob in result.objects:
+    for ob in outputs:
         images[ob.name] = _swap_in(key_of(ob), ob.image_name, ob.resolution, ob.image, finals.get(ob.name),
                                    warnings)
+        if not hasattr(ob, "raw_image"):    # an atlas: no raw image of its own
+            continue
         if ob.raw_image is not None:
             raw = companions.get(ob.name, {}).get(RAW_PART + extension)
             _swap_in(key_of(ob), ob.raw_image_name, ob.resolution, ob.raw_image,
@@ -493,6 +502,11 @@ def write_lightmaps(result, output_dir, warnings, keys=None, output_format="EXR_
             if stale is not None and not stale.users - int(stale.use_fake_user):
                 bpy.data.images.remove(stale)
     return images
+
+
+def _raw(output):
+    """The raw (not denoised) pixels of an output, or None (not denoised, or an atlas)."""
+    return getattr(output, "raw_image", None)
 
 
 def _json_default(value):

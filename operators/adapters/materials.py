@@ -1,11 +1,16 @@
 """Material hook-up of baked lightmaps (Bake's ``hook_up``) and its removal.
 
-* ``'MULTIPLY'``: in each material the object renders with and no other object uses, an Image
-  Texture node "LMDP Lightmap" (the lightmap, default UV map = the render UV map that was baked)
-  and a Mix node "LMDP Lightmap Multiply" (Multiply, factor 1) are inserted in front of the Base
-  Color (Principled BSDF) or Color (Diffuse BSDF) input; whatever fed that input (a link or its
-  value) feeds the Mix node's A input. Nothing else is changed; :func:`unhook_multiply` removes
-  both nodes and restores the link or value.
+* ``'MULTIPLY'``: in each material the object renders with, an Image Texture node "LMDP
+  Lightmap" (the lightmap, read through a UV Map node "LMDP Lightmap UV" naming the UV map that
+  was baked, ``lightmap_uvs.chosen_uv_name``, unless that is the render UV map) and a Mix node "LMDP Lightmap Multiply" (Multiply,
+  factor 1) are inserted in front of the Base Color (Principled BSDF) or Color (Diffuse BSDF)
+  input; whatever fed that input (a link or its value) feeds the Mix node's A input. Nothing else
+  is changed; :func:`unhook_multiply` removes the nodes and restores the link or value. A material
+  that other objects use too is hooked up only when all its users show the same image through a
+  UV map of the same name: the members of an atlas, whose shared image holds each object's
+  texels in its own region of "LMDP Lightmap", so one material selects every object's lightmap
+  through that object's own UV map. Other shared materials are left alone (one warning names
+  them all and their users).
 * ``'PREVIEW'``: a material "<object>_lmdp_preview" (Emission shader showing the lightmap) is
   linked to the object's material slots at *object* level (``slot.link = 'OBJECT'``), so the
   mesh's own materials stay assigned to the mesh; :func:`unhook_preview` restores each slot's
@@ -29,6 +34,7 @@ PREVIEW_SAVED = "lmdp_preview_saved_slots"
 #: Names of the nodes the MULTIPLY hook-up adds.
 NODE_IMAGE = "LMDP Lightmap"
 NODE_MULTIPLY = "LMDP Lightmap Multiply"
+NODE_UV = "LMDP Lightmap UV"
 
 HOOK_UP_ITEMS = (
     ("NONE", "None", "Only write the images (and files)"),
@@ -91,20 +97,29 @@ def check_hook_up(objects, mode):
                         "and Materials) or bake with Hook Up: Preview or None")
 
 
-def hook_up(targets, mode):
+def hook_up(targets, mode, uv_maps=None):
     """Show each lightmap of ``targets`` ([(object, image)]) in its object's materials the
-    ``mode`` way (:data:`HOOK_UP_ITEMS`); returns the warnings. Run :func:`check_hook_up` first."""
+    ``mode`` way (:data:`HOOK_UP_ITEMS`), read through the UV map ``uv_maps[object name]`` (None
+    or absent: the render UV map); returns the warnings. Run :func:`check_hook_up` first."""
     warnings = []
+    uv_maps = uv_maps or {}
     users = material_users() if mode in ("MULTIPLY", "GLTF") else None
+    uv_maps = {obj.name: _pinned_uv_map(obj, uv_maps.get(obj.name)) for obj, _ in targets}
+    shown = {obj.name_full: (image, uv_maps.get(obj.name)) for obj, image in targets}
+    shared = {}
     for obj, image in targets:
         if mode == "MULTIPLY":
-            warnings += hook_multiply(obj, image, users)
+            warnings += hook_multiply(obj, image, users, uv_maps.get(obj.name), shown, shared)
         elif mode == "PREVIEW":
             hook_preview(obj, image)
         elif mode == "GLTF_EMISSIVE":
             hook_preview(obj, *emissive_copy(image))
         elif mode == "GLTF":
-            hook_gltf(obj, image, _own_materials(obj, warnings, users), warnings)
+            hook_gltf(obj, image, _own_materials(obj, warnings, users), warnings, uv_maps.get(obj.name))
+    if shared:
+        warnings.append("Shared materials not hooked up (their users do not show one atlas image through "
+                        "the same UV map; bake them with Atlas on, or use the Preview hook-up): "
+                        + "; ".join(f"'{m}' (used by {', '.join(sorted(u))})" for m, u in sorted(shared.items())))
     return warnings
 
 
@@ -120,6 +135,14 @@ def _own_materials(obj, warnings, users):
         elif mat.node_tree is not None:
             own.append(mat)
     return own
+
+
+def _pinned_uv_map(obj, uv_map):
+    """``uv_map``, or None when it is the render UV map of ``obj``'s mesh (the Image Texture reads
+    that one without a UV Map node)."""
+    layers = getattr(obj.data, "uv_layers", None)
+    render = next((l.name for l in layers if l.active_render), None) if layers is not None else None
+    return None if not uv_map or uv_map == render else uv_map
 
 
 # ---- What an object renders with ----------------------------------------------------------------------
@@ -211,13 +234,30 @@ def _image_node(tree, image, location):
     return tex
 
 
-def _insert_multiply(tree, bsdf, socket, image):
+def _read_through_uv_map(tree, tex, uv_map):
+    """The image node ``tex`` reads UV map ``uv_map`` (a UV Map node "LMDP Lightmap UV"), or the
+    render UV map when ``uv_map`` is None."""
+    node = tree.nodes.get(NODE_UV)
+    if not uv_map:
+        if node is not None:
+            tree.nodes.remove(node)
+        return
+    if node is None or node.type != 'UVMAP':
+        node = tree.nodes.new("ShaderNodeUVMap")
+        node.name = node.label = NODE_UV
+        node.location = (tex.location.x - 220, tex.location.y)
+    node.uv_map = uv_map
+    tree.links.new(node.outputs["UV"], tex.inputs["Vector"])
+
+
+def _insert_multiply(tree, bsdf, socket, image, uv_map=None):
     """Image Texture x whatever fed ``socket`` (a link or its value), into ``socket``. An "LMDP
     Lightmap" node left over from a hook-up whose Mix node was deleted is reused."""
     tex = tree.nodes.get(NODE_IMAGE)
     if tex is None or tex.type != 'TEX_IMAGE':
         tex = _image_node(tree, image, (bsdf.location.x - 520, bsdf.location.y - 260))
     tex.image = image
+    _read_through_uv_map(tree, tex, uv_map)
     mix = tree.nodes.new("ShaderNodeMix")
     mix.name = mix.label = NODE_MULTIPLY
     mix.data_type = 'RGBA'
@@ -233,7 +273,7 @@ def _insert_multiply(tree, bsdf, socket, image):
     tree.links.new(result, socket)
 
 
-def _update_multiply(tree, image):
+def _update_multiply(tree, image, uv_map=None):
     """Point an existing MULTIPLY hook-up at ``image`` (its image node remade if it was deleted)."""
     mix = tree.nodes[NODE_MULTIPLY]
     tex = tree.nodes.get(NODE_IMAGE)
@@ -241,17 +281,25 @@ def _update_multiply(tree, image):
         tex = _image_node(tree, image, (mix.location.x - 280, mix.location.y - 140))
         tree.links.new(tex.outputs["Color"], _mix_colour_sockets(mix)[1])
     tex.image = image
+    _read_through_uv_map(tree, tex, uv_map)
 
 
-def _multiply_targets(obj, warnings, users):
+def _multiply_targets(obj, warnings, users, shown=None, shared=None):
     """(materials of ``obj`` the MULTIPLY hook-up edits, their (node, socket) or None if already
-    hooked up); appends why the others are skipped to ``warnings``. ``users``: :func:`material_users`."""
+    hooked up); appends why the others are skipped to ``warnings``. ``users``: :func:`material_users`.
+    ``shown``: {object key: (image, UV map)} of the hook-up: a material other objects use is edited
+    only when every user shows the same (image, UV map) as ``obj``; the others are added to
+    ``shared`` {material name: its users} (or named in ``warnings`` without ``shared``)."""
     materials, inputs = [], []
+    shown = shown or {}
     for mat in render_materials(obj):
         others = [name for name in users.get(mat, ()) if name != obj.name_full]
-        if others:
-            warnings.append(f"Material '{mat.name}' is shared with {', '.join(others[:3])}: not hooked "
-                            "up (a lightmap belongs to one object); use the Preview hook-up instead")
+        mine = shown.get(obj.name_full)
+        if others and not (mine is not None and all(shown.get(o) == mine for o in others)):
+            if shared is not None:
+                shared[mat.name] = set(users.get(mat, ()))
+            else:
+                warnings.append(f"Material '{mat.name}' is shared with {', '.join(others)}: not hooked up")
             continue
         tree = mat.node_tree
         if tree is None:
@@ -266,16 +314,17 @@ def _multiply_targets(obj, warnings, users):
     return materials, inputs
 
 
-def hook_multiply(obj, image, users=None):
-    """Insert the lightmap multiplied into the colour of ``obj``'s own materials; returns warnings.
-    ``users``: :func:`material_users` (computed if not given)."""
+def hook_multiply(obj, image, users=None, uv_map=None, shown=None, shared=None):
+    """Insert the lightmap multiplied into the colour of ``obj``'s materials, read through
+    ``uv_map``; returns warnings. ``users``: :func:`material_users` (computed if not given);
+    ``shown``, ``shared``: see :func:`_multiply_targets`."""
     warnings = []
     users = users if users is not None else material_users()
-    for mat, target in zip(*_multiply_targets(obj, warnings, users)):
+    for mat, target in zip(*_multiply_targets(obj, warnings, users, shown, shared)):
         if target is None:
-            _update_multiply(mat.node_tree, image)
+            _update_multiply(mat.node_tree, image, uv_map)
         else:
-            _insert_multiply(mat.node_tree, *target, image)
+            _insert_multiply(mat.node_tree, *target, image, uv_map)
     return warnings
 
 
@@ -302,8 +351,9 @@ def unhook_multiply(obj):
                     tree.links.remove(link)
                 socket.default_value = a.default_value
         tree.nodes.remove(mix)
-        if NODE_IMAGE in tree.nodes:
-            tree.nodes.remove(tree.nodes[NODE_IMAGE])
+        for name in (NODE_IMAGE, NODE_UV):
+            if name in tree.nodes:
+                tree.nodes.remove(tree.nodes[name])
         removed += 1
     return removed, left
 

@@ -18,6 +18,7 @@ from ...lmdp_addon.errors import SceneError
 from ...lmdp_addon.model import pipeline
 from ...lmdp_addon.model.export import export_npz
 from ..adapters.extract import extract_scene
+from ..adapters.lightmap_uvs import prepare_lightmap_uvs
 from ..adapters.lightmaps import resolve_output_folder
 from ..adapters.materials import HOOK_UP_ITEMS
 from ..bake_steps import apply_bake, check_bake_texels, compute_bake, planned_bake_inputs
@@ -27,10 +28,11 @@ from ..properties import BLEND_RELATIVE_PATH, bake_settings_from_scene
 from ..session import format_bytes, session_for
 
 
-def capture_scene(context):
-    """SceneArrays of the current scene with the selected meshes carrying the states."""
+def capture_scene(context, uv_maps=None):
+    """SceneArrays of the current scene with the selected meshes carrying the states (their
+    lightmap UV maps ``uv_maps``, see ``extract_scene``)."""
     meshes = selected_meshes(context)
-    scene = extract_scene(context, meshes)
+    scene = extract_scene(context, meshes, uv_maps=uv_maps)
     scene.check_for_lmdp()
     return scene, [obj.name for obj in meshes]
 
@@ -177,11 +179,14 @@ class LMDP_OT_run_pipeline(EngineJob, bpy.types.Operator):
         return settings
 
     def prepare(self, context):
-        scene, names = capture_scene(context)
+        uv_maps, uv_warnings = (prepare_lightmap_uvs(context, selected_meshes(context), self.settings, extract_scene)
+                                if self.bake else (None, []))
+        scene, names = capture_scene(context, uv_maps)
         pipeline.check_build(scene, self.settings)
         # Every bake check runs now, before any work (a mesh without UV map is reported here),
         # except the texel checks, which rasterise every object: the worker runs them first.
-        bake = (planned_bake_inputs(context, scene, names, self.settings, self.hook_up, self.light_paths)
+        bake = (planned_bake_inputs(context, scene, names, self.settings, self.hook_up, self.light_paths,
+                                    uv_maps, uv_warnings)
                 if self.bake else None)
         return scene, names, bake
 

@@ -308,6 +308,22 @@ def _light_paths_line(scene):
             f"{paths.diffuse_bounces}){clamp}")
 
 
+def _lightmap_layout(layout, props):
+    """The lightmap layout settings: UV map, automatic UVs, size per object, atlas."""
+    column = layout.column(align=True)
+    column.prop(props, "lightmap_uv_map")
+    column.prop(props, "auto_lightmap_uvs")
+    column.prop(props, "atlas")
+    layout.prop(props, "resolution_mode")
+    if props.resolution_mode == 'DENSITY':
+        column = layout.column(align=True)
+        column.prop(props, "texel_density")
+        column.prop(props, "min_resolution")
+        column.prop(props, "max_resolution")
+        column.prop(props, "power_of_two")
+    _operator(layout, "lmdp.create_lightmap_uvs", icon='UV')
+
+
 class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
     bl_idname = "LMDP_PT_bake"
     bl_label = "Bake"
@@ -319,6 +335,7 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         column.prop(props, "bake_resolution")
         column.prop(props, "bake_samples")
         column.prop(props, "bake_margin")
+        _lightmap_layout(layout, props)
         row = layout.row()
         row.active = props.bake_mode in ('GUIDED', 'FINAL_GATHER')   # both draw their first bounce from u*
         row.prop(props, "guide_fraction")

@@ -110,6 +110,7 @@ def test_run_all_checks_the_bake_before_any_work(lit_scene, lmdp_ext):
     remove_uv_maps(box)
     select([floor, box])
     scene = bpy.context.scene
+    scene.lmdp.auto_lightmap_uvs = False          # on, the bake would give Box "LMDP Lightmap"
     before = data_snapshot()
     with pytest.raises(RuntimeError, match="No UV map on Box"):
         bpy.ops.lmdp.run_pipeline()
@@ -198,6 +199,7 @@ def test_final_gather_needs_physical_mode(cornell):
 
 def test_mesh_without_uv_map_is_named(lit_scene):
     bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
+    bpy.context.scene.lmdp.auto_lightmap_uvs = False
     floor, box = lit_scene["Floor"], lit_scene["Box"]
     remove_uv_maps(box)
     select([floor, box])
@@ -209,6 +211,7 @@ def test_mesh_without_uv_map_is_named(lit_scene):
 
 def test_overlapping_uvs_are_refused(lit_scene):
     bpy.context.scene.lmdp.bake_mode = 'UNGUIDED'
+    bpy.context.scene.lmdp.auto_lightmap_uvs = False
     box = lit_scene["Box"]
     uv = box.data.uv_layers.active.data
     square = [(0.25, 0.25), (0.75, 0.25), (0.75, 0.75), (0.25, 0.75)]
@@ -239,6 +242,7 @@ def test_zero_resolution_cannot_be_set_and_is_refused_by_the_engine(cornell, lmd
     bake_steps = lmdp_ext.sub("operators.bake_steps")
     settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
     settings.bake_resolution = 0  # a script can still pass 0 to the engine pieces
+    settings.auto_lightmap_uvs = False  # its checks would rasterise at R = 0 first
     only("Floor")
     with pytest.raises(lmdp_ext.sub("lmdp_addon.errors").SceneError, match="at least 1 pixel"):
         bake_steps.bake_inputs(bpy.context, settings)
@@ -289,6 +293,7 @@ def test_the_main_thread_rasterises_nothing_and_esc_stops_the_texel_checks(corne
     jobs = lmdp_ext.sub("operators.jobs")
     settings = lmdp_ext.sub("operators.properties").settings_from_scene(cornell)
     settings.bake_resolution = 64
+    settings.auto_lightmap_uvs = False          # on, it rasterises each object once (at most 256²) to find bad maps
     inputs = bake_steps.bake_inputs(bpy.context, settings)
     assert calls == []                          # prepare: every other check, no rasterisation
     runner = jobs.JobRunner(bake_steps.compute_bake, inputs, settings, name="bake test")
@@ -370,6 +375,7 @@ def test_an_object_whose_islands_cover_no_texel_is_left_out_by_name(cornell, tmp
     cornell.lmdp.bake_resolution = 16
     cornell.lmdp.bake_samples = 2
     cornell.lmdp.output_dir = str(tmp_path)
+    cornell.lmdp.auto_lightmap_uvs = False       # on, TallBox would get "LMDP Lightmap" (test_lightmap_uvs)
     only("Floor", "TallBox")
     assert bpy.ops.lmdp.bake() == {'FINISHED'}
     assert "Floor_lmdp_indirect" in bpy.data.images

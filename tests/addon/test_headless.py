@@ -98,12 +98,13 @@ def test_full_run_on_a_saved_file(repo_root, tmp_path, scene_file, lmdp_ext):
 
 
 def test_meshes_without_uv_map_are_left_out_of_the_bake_or_skip_it_when_named(repo_root, tmp_path, lit_scene):
-    """By default a mesh without UV map is left out (and named), the others are baked; named in
-    --objects it skips the bake, and --bake refuses it before any work."""
+    """With auto_lightmap_uvs off a mesh without UV map is left out (and named), the others are
+    baked; named in --objects it skips the bake, and --bake refuses it before any work."""
     remove_uv_maps(lit_scene["Box"])
     path = tmp_path / "no_uv.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)
-    small = ["--set", "point_count=64", "--set", "bake_resolution=16", "--set", "bake_samples=4"]
+    small = ["--set", "point_count=64", "--set", "bake_resolution=16", "--set", "bake_samples=4",
+             "--set", "auto_lightmap_uvs=false"]   # on (the default), Box gets "LMDP Lightmap" and is baked
     output = tmp_path / "out"
     run = run_script(repo_root, tmp_path, str(path), "--output", str(output), *small)
     assert run.returncode == 0, run.stderr

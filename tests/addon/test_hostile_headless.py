@@ -220,7 +220,7 @@ def test_objects_whose_names_contain_commas_can_be_named(call, lit_scene, tmp_pa
 
 
 def test_bake_refuses_named_meshes_without_uv_map_before_any_work(call, mixed_file):
-    outcome = call(mixed_file, "--objects", "NoUV,Floor", "--bake", *FAST)
+    outcome = call(mixed_file, "--objects", "NoUV,Floor", "--bake", "--set", "auto_lightmap_uvs=false", *FAST)
     outcome.refused(2, "--bake: NoUV has no UV map", "--no-bake")
     assert outcome.summary["steps"] == []
 
@@ -331,7 +331,7 @@ def test_ctrl_c_exits_130_and_says_so(call, headless, lit_file, monkeypatch):
 
 # -- the default selection -------------------------------------------------------------------------
 def test_default_selection_leaves_out_what_cannot_be_baked_and_says_why(call, mixed_file, tmp_path):
-    outcome = call(mixed_file, *FAST, *SMALL_BAKE)
+    outcome = call(mixed_file, "--set", "auto_lightmap_uvs=false", *FAST, *SMALL_BAKE)
     assert outcome.status == 0, outcome.err
     summary = outcome.summary
     assert summary["objects"] == ["Box", "Floor"] and summary["bake"] is True
@@ -341,6 +341,19 @@ def test_default_selection_leaves_out_what_cannot_be_baked_and_says_why(call, mi
     assert "no UV map" in left_out["NoUV"] and "disabled in renders" in left_out["NotRendered"]
     assert "[LMDP] left out NoUV: it has no UV map" in outcome.out
     for name in ("Box", "Floor"):
+        assert (tmp_path / "out" / f"{name}_lmdp_indirect.exr").is_file()
+
+
+def test_default_selection_bakes_meshes_without_uv_map_with_auto_lightmap_uvs(call, mixed_file, tmp_path):
+    """Issue 21, item 7: with the default auto_lightmap_uvs the mesh without UV map is baked (it
+    gets "LMDP Lightmap"); what cannot be baked is still left out, by name and why."""
+    outcome = call(mixed_file, *FAST, *SMALL_BAKE)
+    assert outcome.status == 0, outcome.err
+    summary = outcome.summary
+    assert summary["objects"] == ["Box", "Floor", "NoUV"] and summary["bake"] is True
+    assert set(summary["left_out"]) == {"EdgesOnly", "EmptyMesh", "Lamp", "Hidden", "NotRendered"}
+    assert "NoUV: no UV map, the bake gives it 'LMDP Lightmap'" in outcome.out
+    for name in ("Box", "Floor", "NoUV"):
         assert (tmp_path / "out" / f"{name}_lmdp_indirect.exr").is_file()
 
 

@@ -5,7 +5,8 @@ import bpy
 import pytest
 
 ENGINE_ENUMS = {"cost_mode": "COST_MODES", "solver": "SOLVERS", "bake_mode": "BAKE_MODES",
-                "bake_content": "BAKE_CONTENTS", "output_format": "OUTPUT_FORMATS", "output_8bit": "OUTPUT_8BIT"}
+                "bake_content": "BAKE_CONTENTS", "output_format": "OUTPUT_FORMATS", "output_8bit": "OUTPUT_8BIT",
+                "resolution_mode": "RESOLUTION_MODES"}
 DISPLAY_ENUMS = {"display_quantity": ("Z", "COST_TO_GO", "RESIDUAL"),
                  "policy_subset": ("ACTIVE_OBJECT", "MOST_INFORMATIVE")}
 
