@@ -1,6 +1,7 @@
 """The bench's sun + HDRI scene (issue 19): the Cornell box without its lamp, open at the front,
 under Blender's bundled ``city.exr`` turned so that the HDRI's sun (about 21 % of the map's light,
-48° above the horizon) shines in through the opening.
+48° above the horizon) shines in through the opening, and a sun lamp (2 W/m², 2°) from the same
+side.
 
 :func:`build` edits the Blender scene the session loaded (``BlenderSession.load_scene``) and
 returns the engine's view of it, extracted by the add-on as a user's bake would be
@@ -16,6 +17,10 @@ from .common import ROOT
 HDRI = "city.exr"
 STRENGTH = 1.0
 TURN_Z_DEGREES = 54.0
+#: A sun lamp from -y (through the opening), its elevation, strength (W/m²) and angular diameter.
+SUN_ELEVATION_DEGREES = 48.0
+SUN_STRENGTH = 2.0
+SUN_ANGLE_DEGREES = 2.0
 #: The Cornell box's emitter (``demo_geometry``), removed: the world lights the scene alone.
 LAMP = "Light"
 #: The source of this module is part of the reference cache key (``speed_error.geometry_hash``).
@@ -42,28 +47,42 @@ def build(session):
     links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
     links.new(tex.outputs["Color"], background.inputs["Color"])
     scene.world = world
-    # LAMPS MERGE HOOK: add a SUN light here (e.g. from -y, 48° up) once lmdp_addon/lamps.py models sun lights.
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", 'SUN'))
+    sun.data.energy, sun.data.angle = SUN_STRENGTH, np.radians(SUN_ANGLE_DEGREES)
+    sun.rotation_euler = (np.radians(90.0 - SUN_ELEVATION_DEGREES), 0.0, 0.0)   # shines along -Z: from -y
+    scene.collection.objects.link(sun)
     return engine_scene(session)
 
 
 def engine_scene(session):
     """The add-on's capture of the session's scene (every mesh carries states), as this
-    checkout's ``SceneArrays`` with its ``EnvironmentMap``."""
+    checkout's ``SceneArrays`` (its ``EnvironmentMap``, ``Lamps`` and other parts converted
+    field by field: :func:`local_copy`)."""
+    import dataclasses
     import importlib
 
     from lmdp_addon.scene_arrays import SceneArrays
-    from lmdp_addon.world import EnvironmentMap
     bpy = session.bpy
     extract = importlib.import_module(f"{session.module}.operators.adapters.extract")
     meshes = [o for o in bpy.context.scene.objects if o.type == 'MESH']
     c = extract.extract_scene(bpy.context, meshes)
-    env = c.environment
-    return SceneArrays(
-        vertices=c.vertices, triangles=c.triangles, triangle_object=c.triangle_object,
-        triangle_albedo=c.triangle_albedo, triangle_emission=c.triangle_emission,
-        object_names=list(c.object_names), object_carries_states=c.object_carries_states,
-        world_radiance=c.world_radiance, triangle_emission_two_sided=c.triangle_emission_two_sided,
-        triangle_uv=c.triangle_uv, object_has_uv=c.object_has_uv, corner_normals=c.corner_normals,
-        warnings=list(c.warnings),
-        environment=None if env is None else EnvironmentMap(env.radiance, rotation=env.rotation,
-                                                            interpolation=env.interpolation, name=env.name))
+    return SceneArrays(**{f.name: local_copy(getattr(c, f.name)) for f in dataclasses.fields(SceneArrays)
+                          if f.init and hasattr(c, f.name)})
+
+
+def local_copy(value):
+    """``value`` with every dataclass of the session's extension (``<module>.lmdp_addon.X.C``)
+    rebuilt as this checkout's ``lmdp_addon.X.C`` from its init fields; lists and tuples
+    element by element; anything else as it is."""
+    import dataclasses
+    import importlib
+
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        module = type(value).__module__
+        if ".lmdp_addon" in module:
+            module = "lmdp_addon" + module.split(".lmdp_addon", 1)[1]
+        cls = getattr(importlib.import_module(module), type(value).__name__)
+        return cls(**{f.name: local_copy(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init})
+    if isinstance(value, (list, tuple)):
+        return type(value)(local_copy(v) for v in value)
+    return value
