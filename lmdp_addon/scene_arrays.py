@@ -47,6 +47,10 @@ class SceneArrays:
                         or None: every triangle is flat (its face normal). Corners that equal
                         the face normal (flat faces) are flat: :meth:`smooth_triangles`
     world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays
+    surface             :class:`~lmdp_addon.textures.SurfaceTextures` of the textured and
+                        transparent materials (colour and alpha at a point), or None: every
+                        material is uniform and opaque. ``triangle_albedo`` is then each
+                        triangle's mean albedo; :meth:`albedo_at` the value at a point
     warnings            messages for the user gathered during extraction, and one per object
                         with triangles that are left out (:meth:`usable_triangles`)
     """
@@ -64,6 +68,7 @@ class SceneArrays:
     object_has_uv: np.ndarray = None
     warnings: list = field(default_factory=list)
     corner_normals: np.ndarray = None
+    surface: object = None
     _held: dict = field(default=None, init=False, repr=False, compare=False)
     _hold_depth: int = field(default=0, init=False, repr=False, compare=False)
 
@@ -221,6 +226,13 @@ class SceneArrays:
         if side is not None:
             out = np.where(np.asarray(side, dtype=bool)[:, None], out, -out)
         return out
+
+    def albedo_at(self, tri, bu, bv):
+        """(k, 3) float32 diffuse albedo in [0, 1] at barycentrics ``(bu, bv)`` of triangles
+        ``tri`` (embree's convention): the textured value (:attr:`surface`) or the triangle's."""
+        if self.surface is None or not self.surface.has_albedo:
+            return np.clip(np.take(self.triangle_albedo, np.asarray(tri, dtype=np.int64), axis=0), 0.0, 1.0)
+        return self.surface.albedo(tri, bu, bv, self.triangle_albedo)
 
     def valid_triangles(self):
         """Boolean mask of usable triangles (:meth:`usable_triangles`) with non-zero area."""

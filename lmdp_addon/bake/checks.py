@@ -115,6 +115,8 @@ def scene_fingerprint(scene):
         h.update(b"\0corner_normals\0")
         h.update(np.flatnonzero(smooth).astype(np.int64).tobytes())
         h.update(np.ascontiguousarray(scene.corner_normals[smooth], dtype=np.float32).tobytes())
+    if getattr(scene, "surface", None) is not None:
+        h.update(b"\0surface\0" + scene.surface.fingerprint())
     return h.hexdigest()
 
 

@@ -200,10 +200,10 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         pos = tc[:, 0] + bu[hit, None] * (tc[:, 1] - tc[:, 0]) + bv[hit, None] * (tc[:, 2] - tc[:, 0])
         if smooth:
             ns = scene.shading_normals(t, bu[hit], bv[hit])        # the front was hit (keep)
-            value = albedo[t] * lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
+            value = scene.albedo_at(t, bu[hit], bv[hit]) * lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
                                                     geometric=ng)[0]
         else:
-            value = albedo[t] * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+            value = scene.albedo_at(t, bu[hit], bv[hit]) * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R

@@ -48,6 +48,7 @@ import numpy as np
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
+from ..transparency import Transparency
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
@@ -121,6 +122,10 @@ class IndirectTracer:
         #: ``bsdf_diffuse_sample``). Flat scenes keep the face normal for both, bit for bit.
         self.smooth = scene.has_smooth_normals()
         self.albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
+        #: Textured materials: the albedo at each hit (``SceneArrays.albedo_at``); alpha: rays
+        #: pass transparent surfaces with probability 1 - alpha (``transparency``).
+        self.textured = scene.surface is not None and scene.surface.has_albedo
+        self.transparency = Transparency.of(scene)
         self.objects = scene.triangle_object
         self.world = np.asarray(scene.world_radiance, dtype=np.float32)
         self.world_lit = bool(np.any(self.world > 0))
@@ -164,7 +169,11 @@ class IndirectTracer:
         while len(idx):
             # ---- closest hits y_bounce of the sampled directions ----
             origin = pos + lift[:, None] * gnrm
-            tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
+            if self.transparency is None:
+                tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
+            else:
+                tri, dist, bu, bv, passes = self.transparency.intersect(self.caster, origin, d, rng)
+                stats.rays += passes
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2:
@@ -260,14 +269,15 @@ class IndirectTracer:
         front = dot(ng, d) < 0
         gnrm = np.where(front[:, None], ng, -ng)
         nrm = self.scene.shading_normals(tri, bu, bv, side=front) if self.smooth else gnrm
-        return pos, nrm, gnrm, front, beta * (w[:, None] * rows(self.albedo, tri))
+        albedo = self.scene.albedo_at(tri, bu, bv) if self.textured else rows(self.albedo, tri)
+        return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
 
     def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k >= 2): the world
         through the rays that escape, the emitters through the rays ``h`` that hit geometry
         (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays."""
         if self.world_lit and len(h) < len(idx):
-            miss = np.flatnonzero(tri < 0)
+            miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
             L[idx[miss]] += rows(bw, miss) * self.world
         if len(h):
             lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals)
