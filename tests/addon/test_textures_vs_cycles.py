@@ -193,3 +193,104 @@ def test_albedo_at_texels_matches_cycles_diffuse_color(fresh_scene, lmdp_ext, de
         assert error < 2e-3, (obj.name, error)
     assert not any("Material 'Repeat'" in w or "Material 'Chain'" in w or "Material 'Attribute'" in w
                    or "Material 'Mirror'" in w or "Material 'Alpha'" in w for w in sa.warnings), sa.warnings
+
+
+# -- the indirect light against Cycles' DIFFUSE INDIRECT bake -----------------------------------
+
+def check_indirect(lmdp_ext, demo, name, samples=512, ref_samples=1024):  # noqa: F811
+    """lmdp.bake (UNGUIDED) of ``name`` against Cycles (two seeds): the mean within 2 % and 5
+    standard errors of both, the per-texel squared differences as the variances predict."""
+    refs = reference(lmdp_ext, demo, name, RESOLUTION, ref_samples)
+    ob = lmdp_bake(lmdp_ext, name, "UNGUIDED", RESOLUTION, samples)
+    ours, cyc, var_o, var_c = compare(ob, refs)
+    rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
+    excess = ((ours - cyc) ** 2 - var_o - var_c).sum(axis=1)
+    print(f"{name}: {len(ours)} texels, mean ours {ours.mean(axis=0)} Cycles {cyc.mean(axis=0)}: "
+          f"{np.round(rel * 100, 2)} % ± {np.round(rel_sigma * 100, 2)} % (1 s.e.), per-texel excess "
+          f"{excess.mean():.3g} ± {excess.std() / np.sqrt(len(excess)):.3g}")
+    assert np.all(np.abs(rel) < 0.02), rel
+    assert abs(excess.mean()) <= K * excess.std() / np.sqrt(len(excess)), excess.mean()
+    return rel
+
+
+def texel_image(lmdp_ext, obj, size, colour_of):
+    """An (size, size, 4) image whose pixels on ``obj``'s render UV islands have the colour
+    ``colour_of(positions (n, 3)) -> (n, 3)`` of the surface point each stands for (others: the
+    mean), so a texture's colour follows the object's geometry."""
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    texels = lmdp_ext.sub("lmdp_addon.bake.texels")
+    sa = extract.extract_scene(bpy.context, [obj])
+    tris = np.flatnonzero(sa.triangle_object == sa.object_names.index(obj.name))
+    normals, _ = sa.triangle_geometry()
+    ts = texels.rasterize_texels(sa.triangle_uv[tris], sa.corners()[tris], normals[tris], size)
+    rgb = colour_of(ts.position)
+    px = np.ones((size, size, 4), np.float32)
+    px[..., :3] = rgb.mean(axis=0)
+    px[ts.row, ts.col, :3] = rgb
+    return px
+
+
+def textured_box(lmdp_ext):
+    """The Cornell box's tall box with an sRGB Image Texture whose colour goes from orange at the
+    bottom to blue at the top, with a checker, through a Mix (Multiply, factor 0.8) by a warm
+    RGB, into a Diffuse BSDF."""
+    box = bpy.data.objects["TallBox"]
+
+    def colour(p):
+        t = np.clip(p[:, 2:3] / 0.6, 0, 1)
+        gradient = (1 - t) * np.array([0.95, 0.55, 0.15]) + t * np.array([0.15, 0.3, 0.9])
+        check = (np.floor(p[:, 0] * 10) + np.floor(p[:, 1] * 10) + np.floor(p[:, 2] * 10)) % 2
+        return gradient * (0.55 + 0.45 * check[:, None])
+
+    img = image("BoxTexture", texel_image(lmdp_ext, box, 32, colour))
+    mat = box.data.materials[0]
+    tree = mat.node_tree
+    diffuse = next(n for n in tree.nodes if n.type == 'BSDF_DIFFUSE')
+    tex = image_node(tree, img)
+    rgb = tree.nodes.new("ShaderNodeRGB")
+    rgb.outputs[0].default_value = (0.9, 0.85, 0.8, 1.0)
+    mix = tree.nodes.new("ShaderNodeMix")
+    mix.data_type = 'RGBA'
+    mix.blend_type = 'MULTIPLY'
+    mix.inputs["Factor"].default_value = 0.8
+    tree.links.new(tex.outputs["Color"], mix.inputs[6])
+    tree.links.new(rgb.outputs[0], mix.inputs[7])
+    tree.links.new(mix.outputs[2], diffuse.inputs["Color"])
+    return box
+
+
+@pytest.mark.parametrize("name", ["Floor", "TallBox"])
+def test_textured_box_in_a_lit_room_matches_cycles(fresh_scene, lmdp_ext, demo, name):  # noqa: F811
+    build("CORNELL_BOX", lmdp_ext)
+    textured_box(lmdp_ext)
+    check_indirect(lmdp_ext, demo, name)
+
+
+def leaf_plane():
+    """A 0.5 m plane 0.75 m above the Cornell floor (above both boxes: a plane coplanar with a
+    box's top would make the comparison meaningless) with a Principled BSDF whose Base Color and
+    Alpha come from an image: a leaf-green disc with holes (alpha 1) on alpha 0."""
+    n = 32
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n - 0.5
+    inside = (x ** 2 + (y / 0.7) ** 2 < 0.2) & ~(((x * 6) % 1 < 0.3) & ((y * 6) % 1 < 0.3))
+    px = np.zeros((n, n, 4), np.float32)
+    px[..., :3] = (0.15, 0.6, 0.1)
+    px[..., 3] = inside
+    mat, tree, bsdf = principled_material("Leaf")
+    tex = image_node(tree, image("LeafImage", px))
+    tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    tree.links.new(tex.outputs["Alpha"], bsdf.inputs["Alpha"])
+    leaf = plane("Leaf", (0.1, -0.15, 0.75), mat)
+    leaf.scale = (0.5, 0.5, 1.0)
+    bpy.context.view_layer.update()
+    return leaf
+
+
+def test_alpha_cut_out_leaf_over_a_floor_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F811
+    """Rays and shadow rays pass the leaf's cut-out parts as in Cycles: the floor under it."""
+    build("CORNELL_BOX", lmdp_ext)
+    leaf_plane()
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    sa = extract.extract_scene(bpy.context, [bpy.data.objects["Floor"]])
+    assert sa.surface.has_alpha
+    check_indirect(lmdp_ext, demo, "Floor")
