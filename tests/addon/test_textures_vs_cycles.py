@@ -14,10 +14,14 @@ import bpy
 import numpy as np
 import pytest
 
-from helpers import select
-from test_bake_vs_cycles import K, assert_means_agree, build, compare, demo, lmdp_bake, reference  # noqa: F401
+from test_bake_vs_cycles import K, assert_means_agree, build, compare, lmdp_bake, reference
 
 RESOLUTION = 24
+
+
+@pytest.fixture
+def demo(lmdp_ext):
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
 
 
 def image(name, pixels, float_buffer=False, colorspace=None):
@@ -169,7 +173,7 @@ def textured_planes(rng):
     return made
 
 
-def test_albedo_at_texels_matches_cycles_diffuse_color(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_albedo_at_texels_matches_cycles_diffuse_color(fresh_scene, lmdp_ext, demo):
     """Cycles' DIFFUSE COLOR bake (1 sample: the texel point itself) against the engine's
     albedo x alpha at the same texels, per material: within 2e-3 (8-bit images, float32)."""
     extract = lmdp_ext.sub("operators.adapters.extract")
@@ -197,7 +201,7 @@ def test_albedo_at_texels_matches_cycles_diffuse_color(fresh_scene, lmdp_ext, de
 
 # -- the indirect light against Cycles' DIFFUSE INDIRECT bake -----------------------------------
 
-def check_indirect(lmdp_ext, demo, name, samples=512, ref_samples=1024):  # noqa: F811
+def check_indirect(lmdp_ext, demo, name, samples=512, ref_samples=1024):
     """lmdp.bake (UNGUIDED) of ``name`` against Cycles (two seeds): the mean within 2 % and 5
     standard errors of both, the per-texel squared differences as the variances predict."""
     refs = reference(lmdp_ext, demo, name, RESOLUTION, ref_samples)
@@ -260,7 +264,7 @@ def textured_box(lmdp_ext):
 
 
 @pytest.mark.parametrize("name", ["Floor", "TallBox"])
-def test_textured_box_in_a_lit_room_matches_cycles(fresh_scene, lmdp_ext, demo, name):  # noqa: F811
+def test_textured_box_in_a_lit_room_matches_cycles(fresh_scene, lmdp_ext, demo, name):
     build("CORNELL_BOX", lmdp_ext)
     textured_box(lmdp_ext)
     check_indirect(lmdp_ext, demo, name)
@@ -286,7 +290,7 @@ def leaf_plane():
     return leaf
 
 
-def test_alpha_cut_out_leaf_over_a_floor_matches_cycles(fresh_scene, lmdp_ext, demo):  # noqa: F811
+def test_alpha_cut_out_leaf_over_a_floor_matches_cycles(fresh_scene, lmdp_ext, demo):
     """Rays and shadow rays pass the leaf's cut-out parts as in Cycles: the floor under it."""
     build("CORNELL_BOX", lmdp_ext)
     leaf_plane()
