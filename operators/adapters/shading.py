@@ -123,22 +123,31 @@ def _to_table(px, image):
     w, h = image.size
     c = image.channels
     px = px.reshape(h, w, c)
-    rgba = np.empty((h, w, 4), np.float32)
-    if c >= 3:
-        rgba[..., :3] = px[..., :3]
+    if c == 4:
+        rgba = px                                   # the buffer read, used in place
     else:
-        rgba[..., :3] = px[..., :1]
-    rgba[..., 3] = px[..., 3] if c == 4 else (px[..., 1] if c == 2 else 1.0)
+        rgba = np.empty((h, w, 4), np.float32)
+        rgba[..., :3] = px[..., :3] if c >= 3 else px[..., :1]
+        rgba[..., 3] = px[..., 1] if c == 2 else 1.0
     if image.alpha_mode == 'NONE':
         rgba[..., 3] = 1.0
     srgb = (not image.is_float) and image.colorspace_settings.name == 'sRGB'
     premultiplied = c in (2, 4) and image.alpha_mode in ('STRAIGHT', 'PREMUL')
-    if premultiplied and image.alpha_mode == 'STRAIGHT' and bool(np.any(rgba[..., 3] < 1)):
-        if image.is_float:
-            rgba[..., :3] *= rgba[..., 3:]
-        else:   # as Cycles associates 8-bit alpha: on the bytes, truncated
-            bytes_ = np.rint(rgba * 255.0).astype(np.int32)
-            rgba[..., :3] = (bytes_[..., :3] * bytes_[..., 3:]) // 255 / np.float32(255.0)
+    if premultiplied and image.alpha_mode == 'STRAIGHT':
+        rows = np.flatnonzero((rgba[..., 3] < 1).any(axis=1))     # only rows with alpha < 1
+        if len(rows):
+            part = rgba[rows]
+            if image.is_float:
+                part[..., :3] *= part[..., 3:]
+            else:   # as Cycles associates 8-bit alpha: on the bytes, truncated (exact in float32)
+                a = np.rint(part[..., 3:] * np.float32(255))
+                colour = np.rint(part[..., :3] * np.float32(255))
+                colour *= a
+                colour /= np.float32(255)
+                np.floor(colour, out=colour)
+                colour /= np.float32(255)
+                part[..., :3] = colour
+            rgba[rows] = part
     return tx.ImageTable(rgba, srgb=srgb, name=image.name, premultiplied=premultiplied)
 
 

@@ -298,3 +298,47 @@ def test_alpha_cut_out_leaf_over_a_floor_matches_cycles(fresh_scene, lmdp_ext, d
     sa = extract.extract_scene(bpy.context, [bpy.data.objects["Floor"]])
     assert sa.surface.has_alpha
     check_indirect(lmdp_ext, demo, "Floor")
+
+
+# -- the image cache ------------------------------------------------------------------------------
+
+def test_images_are_read_once_until_they_change(fresh_scene, lmdp_ext, tmp_path):
+    """A file image is read on the first extraction only; editing its pixels (the image becomes
+    dirty), replacing it by another image of the same name and size, or changing its colour
+    space make the next extraction read it again and see the change."""
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    shading = lmdp_ext.sub("operators.adapters.shading")
+    px = np.ones((64, 64, 4), np.float32)
+    px[..., :3] = 0.5
+    img = bpy.data.images.new("Cached", 64, 64, alpha=True)
+    img.pixels.foreach_set(px.ravel())
+    img.filepath_raw = str(tmp_path / "cached.png")
+    img.file_format = 'PNG'
+    img.save()
+    img.reload()
+    mat = bpy.data.materials.new("Cached")
+    bsdf = next(n for n in mat.node_tree.nodes if n.type == 'BSDF_PRINCIPLED')
+    tex = image_node(mat.node_tree, img)
+    mat.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    obj = plane("CachedPlane", (0, 0, 0), mat)
+
+    def albedo():
+        return extract.extract_scene(bpy.context, [obj]).triangle_albedo[0, 0]
+
+    reads = shading.IMAGE_CACHE.reads
+    first = albedo()
+    assert shading.IMAGE_CACHE.reads == reads + 1
+    assert albedo() == first and albedo() == first
+    assert shading.IMAGE_CACHE.reads == reads + 1               # no read on later calls
+    px[..., :3] = 0.25
+    img.pixels.foreach_set(px.ravel())                          # edited in memory: dirty
+    assert img.is_dirty
+    edited = albedo()
+    assert edited < first and shading.IMAGE_CACHE.reads == reads + 2
+    img.colorspace_settings.name = 'Non-Color'
+    assert albedo() != edited
+    bpy.data.images.remove(img)
+    other = bpy.data.images.new("Cached", 64, 64, alpha=True)   # same name and size
+    other.pixels.foreach_set(np.full(64 * 64 * 4, 1.0, np.float32))
+    tex.image = other
+    assert albedo() == pytest.approx(1.0)
