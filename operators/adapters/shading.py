@@ -380,6 +380,8 @@ class ShadingReader:
         if node is None:
             return _default(out, channels)
         expr = self._node(node, out, inner)
+        if expr is not None and tx.constant(expr) is None and not any(tx.references(expr).values()):
+            expr = tx.Const(expr.evaluate(_One())[0].astype(np.float64))   # a chain of constants
         if expr is None:
             default = _default(socket, channels)
             self.warn(f"'{node.name}' ({node.bl_label}) cannot be evaluated by LMDP; "

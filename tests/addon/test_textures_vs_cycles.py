@@ -342,3 +342,54 @@ def test_images_are_read_once_until_they_change(fresh_scene, lmdp_ext, tmp_path)
     other.pixels.foreach_set(np.full(64 * 64 * 4, 1.0, np.float32))
     tex.image = other
     assert albedo() == pytest.approx(1.0)
+
+
+# -- emission ----------------------------------------------------------------------------------
+
+def test_emission_in_node_groups_with_strength_chains_and_textures(fresh_scene, lmdp_ext, demo):
+    """An Emission shader inside a node group whose Strength is Value x Math (Multiply) outside
+    it: the radiance Cycles' EMIT bake gives (1 sample, the texel points); a Principled BSDF
+    whose Emission Color is an image: averaged per triangle, with a warning naming the material."""
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    group = bpy.data.node_groups.new("Glow Group", 'ShaderNodeTree')
+    group.interface.new_socket("Strength", in_out='INPUT', socket_type='NodeSocketFloat')
+    group.interface.new_socket("Shader", in_out='OUTPUT', socket_type='NodeSocketShader')
+    g_in, g_out = group.nodes.new("NodeGroupInput"), group.nodes.new("NodeGroupOutput")
+    emission = group.nodes.new("ShaderNodeEmission")
+    emission.inputs["Color"].default_value = (1.0, 0.5, 0.25, 1.0)
+    group.links.new(g_in.outputs[0], emission.inputs["Strength"])
+    group.links.new(emission.outputs[0], g_out.inputs[0])
+    mat = bpy.data.materials.new("Grouped Glow")
+    tree = mat.node_tree
+    tree.nodes.clear()
+    out = tree.nodes.new("ShaderNodeOutputMaterial")
+    node = tree.nodes.new("ShaderNodeGroup")
+    node.node_tree = group
+    value = tree.nodes.new("ShaderNodeValue")
+    value.outputs[0].default_value = 2.0
+    math = tree.nodes.new("ShaderNodeMath")
+    math.operation = 'MULTIPLY'
+    math.inputs[1].default_value = 1.5
+    tree.links.new(value.outputs[0], math.inputs[0])
+    tree.links.new(math.outputs[0], node.inputs[0])
+    tree.links.new(node.outputs[0], out.inputs["Surface"])
+    glow = plane("Glow", (0, 0, 0), mat)
+
+    tex_mat, tex_tree, bsdf = principled_material("Screen")
+    px = np.ones((8, 8, 4), np.float32)
+    px[:, :4, :3] = 0.0                    # left half black, right half white
+    tex = image_node(tex_tree, image("ScreenImage", px, float_buffer=True))
+    tex_tree.links.new(tex.outputs["Color"], bsdf.inputs["Emission Color"])
+    bsdf.inputs["Emission Strength"].default_value = 4.0
+    screen = plane("Screen", (3, 0, 0), tex_mat)
+
+    sa = extract.extract_scene(bpy.context, [])
+    assert sa.has_light()
+    emitted = {n: sa.triangle_emission[sa.triangle_object == i] for i, n in enumerate(sa.object_names)}
+    np.testing.assert_allclose(emitted["Glow"], [[3.0, 1.5, 0.75]] * 2, rtol=1e-6)
+    cycles = demo.bake_cycles(bpy.context, glow, 'EMIT', (), 8, samples=1)[..., :3]
+    np.testing.assert_allclose(cycles.reshape(-1, 3), [[3.0, 1.5, 0.75]] * 64, rtol=1e-5)
+    # The screen's two triangles each cover half black, half white: 4 x 1/2 on average.
+    np.testing.assert_allclose(emitted["Screen"].mean(), 2.0, rtol=0.05)
+    assert any("Material 'Screen'" in w and "emission is textured" in w for w in sa.warnings)
+    assert not any("Grouped Glow" in w for w in sa.warnings), sa.warnings
