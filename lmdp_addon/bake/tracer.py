@@ -126,6 +126,10 @@ class IndirectTracer:
         #: pass transparent surfaces with probability 1 - alpha (``transparency``).
         self.textured = scene.surface is not None and scene.surface.has_albedo
         self.transparency = Transparency.of(scene)
+        #: Some surface may have a colour channel 0: the estimate there follows Cycles' pass
+        #: division (``_even_colour``).
+        self.zero_colour = bool(self.textured or self.transparency is not None
+                                or np.any(self.albedo[~scene.is_emissive()] <= 0))
         self.objects = scene.triangle_object
         self.world = np.asarray(scene.world_radiance, dtype=np.float32)
         self.world_lit = bool(np.any(self.world > 0))
@@ -156,6 +160,10 @@ class IndirectTracer:
         gnrm = nrm
         if self.smooth and triangles is not None:
             nrm, gnrm = self._start_normals(pos, nrm, np.asarray(triangles, dtype=np.int64))
+        if self.zero_colour and triangles is not None:
+            # Cycles' DIFFUSE INDIRECT pass is divided by the diffuse colour at x (albedo x
+            # alpha); in channels where that colour is 0 it takes the others' (below).
+            colour0 = self._start_colour(pos, np.asarray(triangles, dtype=np.int64))
         states = np.asarray(states, dtype=np.int64) if self.guide is not None else np.full(n, -1)
         d, w, cos_prev = self.directions.sample(nrm, states, np.asarray(u_first, np.float64),
                                                 np.asarray(u_mix), first=True)
@@ -224,7 +232,24 @@ class IndirectTracer:
                 idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
                     np.flatnonzero(keep), idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
             bounce += 1
+        if self.zero_colour and triangles is not None:
+            L = _even_colour(L, colour0)
         return L, stats
+
+    def _start_colour(self, pos, triangles):
+        """(k, 3) diffuse colour (albedo x alpha) of the start points ``pos`` on ``triangles``."""
+        t = triangles
+        e1, e2 = self.edge1[t].astype(np.float64), self.edge2[t].astype(np.float64)
+        r = pos.astype(np.float64) - self.corner0[t]
+        a, b, c = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+        p, q = (e1 * r).sum(1), (e2 * r).sum(1)
+        det = a * c - b * b
+        det = np.where(det != 0, det, 1.0)
+        bu, bv = ((c * p - b * q) / det).astype(np.float32), ((a * q - b * p) / det).astype(np.float32)
+        colour = self.scene.albedo_at(t, bu, bv)
+        if self.transparency is not None:
+            colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
+        return colour
 
     def _start_normals(self, pos, normals, triangles):
         """Shading and geometric normals ``(N, Ng)`` (k, 3) float32 of the start points ``pos``
@@ -299,6 +324,23 @@ class IndirectTracer:
         stats.gathered += int(done.sum())
         stats.gather_fallback += int((~done).sum())
         return np.flatnonzero(~done)
+
+
+def _even_colour(L, colour):
+    """``L (k, 3)`` where the diffuse colour ``colour (k, 3)`` at the start point has zero
+    channels, as Cycles' ``safe_divide_even_color`` leaves a pass divided by it: a zero
+    channel takes the value of the other channel (two zeros) or the mean of the two others
+    (one zero); all three zero give 0."""
+    zero = colour <= 0
+    some = np.flatnonzero(zero.any(axis=1))
+    if len(some) == 0:
+        return L
+    v, z = L[some].copy(), zero[some]
+    v[z] = 0.0
+    n = (~z).sum(axis=1, keepdims=True)
+    fill = np.where(n > 0, v.sum(axis=1, keepdims=True) / np.maximum(n, 1), 0.0)
+    L[some] = np.where(z, fill, v)
+    return L
 
 
 def _select_rows(index, *arrays):

@@ -10,10 +10,13 @@
   plane is compared with Cycles' DIFFUSE INDIRECT bake of the same texels (clamping off, the
   same bounces), as in ``test_bake_vs_cycles``: mean within 2 % and 5 standard errors of both.
 """
+import os
+
 import bpy
 import numpy as np
 import pytest
 
+from helpers import select
 from test_bake_vs_cycles import K, assert_means_agree, build, compare, lmdp_bake, reference
 
 RESOLUTION = 24
@@ -381,7 +384,7 @@ def test_emission_in_node_groups_with_strength_chains_and_textures(fresh_scene, 
     tex = image_node(tex_tree, image("ScreenImage", px, float_buffer=True))
     tex_tree.links.new(tex.outputs["Color"], bsdf.inputs["Emission Color"])
     bsdf.inputs["Emission Strength"].default_value = 4.0
-    screen = plane("Screen", (3, 0, 0), tex_mat)
+    plane("Screen", (3, 0, 0), tex_mat)
 
     sa = extract.extract_scene(bpy.context, [])
     assert sa.has_light()
@@ -393,3 +396,62 @@ def test_emission_in_node_groups_with_strength_chains_and_textures(fresh_scene, 
     np.testing.assert_allclose(emitted["Screen"].mean(), 2.0, rtol=0.05)
     assert any("Material 'Screen'" in w and "emission is textured" in w for w in sa.warnings)
     assert not any("Grouped Glow" in w for w in sa.warnings), sa.warnings
+
+
+# -- a glTF scene as a new user would bake it ------------------------------------------------------
+
+GLTF = "/work/fp/gltf/04_common_materials/04_common_materials.gltf"
+
+
+def gltf_scene():
+    """glTF-Sample-style "common materials" (a crate with an image texture on a plane, a red
+    sphere) imported with Blender's glTF importer, a 3 m area light 8 m up, and a lightmap UV
+    map (Smart UV Project, active for rendering) on each mesh; the crate's texture keeps its own
+    UV map through a UV Map node. The Principled BSDFs' specular layer is switched off (IOR
+    Level 0): it is not this subsystem's (issue 18, item 3)."""
+    assert bpy.ops.import_scene.gltf(filepath=GLTF) == {'FINISHED'}
+    crate = bpy.data.materials["Crate"].node_tree
+    uv = crate.nodes.new("ShaderNodeUVMap")
+    uv.uv_map = "UVMap"
+    crate.links.new(uv.outputs["UV"], crate.nodes["Image Texture"].inputs["Vector"])
+    for mat in bpy.data.materials:
+        for node in (mat.node_tree.nodes if mat.node_tree else ()):
+            if node.type == 'BSDF_PRINCIPLED':
+                node.inputs["Specular IOR Level"].default_value = 0.0
+    for name in ("Cube", "Plane", "Sphere"):
+        obj = bpy.data.objects[name]
+        layer = obj.data.uv_layers.new(name="Lightmap")
+        layer.active_render = True
+        obj.data.uv_layers.active = layer
+        select([obj])
+        bpy.ops.object.mode_set(mode='EDIT')
+        bpy.ops.mesh.select_all(action='SELECT')
+        bpy.ops.uv.smart_project(island_margin=0.05)
+        bpy.ops.object.mode_set(mode='OBJECT')
+    light = bpy.data.lights.new("Area", 'AREA')
+    light.energy, light.size = 3000.0, 3.0
+    lamp = bpy.data.objects.new("Area", light)
+    lamp.location = (1.0, -1.0, 8.0)
+    bpy.context.scene.collection.objects.link(lamp)
+    cycles = bpy.context.scene.cycles
+    cycles.sample_clamp_indirect = 0.0
+    cycles.max_bounces = cycles.diffuse_bounces = 8      # the bake follows the scene's Light Paths
+    bpy.context.view_layer.update()
+
+
+@pytest.mark.skipif(not os.path.exists(GLTF), reason="the glTF sample is not on this machine")
+@pytest.mark.parametrize("name", ["Cube", "Sphere"])
+def test_gltf_scene_matches_cycles_per_receiver(fresh_scene, lmdp_ext, demo, name):
+    """The textured crate and the red sphere (albedo 0 in green and blue: Cycles' pass division
+    gives those channels the red one's value, and so does the bake)."""
+    gltf_scene()
+    check_indirect(lmdp_ext, demo, name)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not os.path.exists(GLTF), reason="the glTF sample is not on this machine")
+def test_gltf_floor_matches_cycles(fresh_scene, lmdp_ext, demo):
+    """The 20 m floor, lit only indirectly by what the crate and the sphere reflect (dark and
+    noisy: more samples)."""
+    gltf_scene()
+    check_indirect(lmdp_ext, demo, "Plane", samples=2048, ref_samples=4096)

@@ -209,3 +209,14 @@ def test_the_build_sees_through_a_clear_leaf_and_not_through_an_opaque_one():
 
     np.testing.assert_allclose(dense(0.0), dense(None), atol=1e-6)
     np.testing.assert_array_equal(dense(1.0), dense(1.0, plain=True))
+
+
+def test_zero_colour_channels_follow_cycles_pass_division():
+    """Cycles divides the DIFFUSE INDIRECT pass by the diffuse colour with
+    ``safe_divide_even_color``: a channel whose colour is 0 takes the other one (two zeros) or
+    the mean of the two others (one zero); the bake's texel values do the same."""
+    from lmdp_addon.bake.tracer import _even_colour
+    L = np.array([[0.2, 0.4, 0.6]] * 4, np.float32)
+    colour = np.array([[0.5, 0.5, 0.5], [0.6, 0.0, 0.0], [0.0, 0.3, 0.1], [0.0, 0.0, 0.0]], np.float32)
+    np.testing.assert_allclose(_even_colour(L.copy(), colour),
+                               [[0.2, 0.4, 0.6], [0.2, 0.2, 0.2], [0.5, 0.4, 0.6], [0.0, 0.0, 0.0]], rtol=1e-6)
