@@ -36,7 +36,8 @@ import numpy as np
 EXTENSIONS = ("REPEAT", "EXTEND", "CLIP", "MIRROR")
 INTERPOLATIONS = ("LINEAR", "CLOSEST")
 MIX_BLENDS = ("MIX", "MULTIPLY", "ADD", "SUBTRACT", "SCREEN", "DIVIDE", "DIFFERENCE", "DARKEN", "LIGHTEN")
-MATH_OPERATIONS = ("ADD", "SUBTRACT", "MULTIPLY", "DIVIDE", "POWER", "MINIMUM", "MAXIMUM")
+MATH_OPERATIONS = ("ADD", "SUBTRACT", "MULTIPLY", "DIVIDE", "POWER", "MINIMUM", "MAXIMUM", "LESS_THAN",
+                   "GREATER_THAN", "ABSOLUTE", "ROUND", "FLOOR")
 LUMINANCE32 = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 #: Barycentrics (weights of corners 1 and 2) of the 16 points at which :meth:`SurfaceTextures.
@@ -269,7 +270,8 @@ class Mix:
 @dataclass
 class Math:
     """A Math node on values: ``operation`` of :data:`MATH_OPERATIONS` (Cycles: DIVIDE and
-    POWER give 0 where undefined), ``clamp`` to [0, 1]."""
+    POWER give 0 where undefined; LESS_THAN / GREATER_THAN give 1 or 0, as the glTF importer's
+    alpha cut-off uses them; ABSOLUTE, ROUND and FLOOR read ``a`` only), ``clamp`` to [0, 1]."""
 
     operation: str
     a: object
@@ -296,6 +298,16 @@ class Math:
                 out = np.minimum(a, b)
             elif op == "MAXIMUM":
                 out = np.maximum(a, b)
+            elif op == "LESS_THAN":
+                out = (a < b).astype(np.float32)
+            elif op == "GREATER_THAN":
+                out = (a > b).astype(np.float32)
+            elif op == "ABSOLUTE":
+                out = np.abs(a)
+            elif op == "ROUND":
+                out = np.floor(a + 0.5)
+            elif op == "FLOOR":
+                out = np.floor(a)
             else:
                 raise ValueError(f"unknown math operation {op!r}")
         return (np.clip(out, 0.0, 1.0) if self.clamp else out).astype(np.float32)

@@ -187,7 +187,10 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         owner = np.repeat(ids, R)
         d = cosine_directions(shading[owner].astype(np.float32), u, stratified=True)
         origin = lifted[owner].astype(np.float32)
-        tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
+        if lights.transparency is None:
+            tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
+        else:   # transparent surfaces pass rays with probability 1 - alpha (``transparency``)
+            tri, _, bu, bv, _ = lights.transparency.intersect(caster, origin, d, rng)
         hit = np.flatnonzero(tri >= 0)
         if smooth:   # shading-normal cosine rays below the geometric surface are absorbed (tracer)
             hit = hit[np.einsum("ij,ij->i", states.normals[owner[hit]], d[hit]) > 0]
