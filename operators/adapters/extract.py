@@ -483,12 +483,13 @@ def _add_light(builder, name, inst, warnings, skipped_lights):
                 np.zeros(2, dtype=bool), None)
 
 
-def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
+def _add_mesh(builder, name, inst, fingerprint, reader, warnings, colour_bakes=None):
     """The evaluated mesh of ``inst`` in world space, with its materials and render UV map;
     returns False when it has no faces. ``fingerprint``: the object's :func:`object_fingerprint`
     when it carries states, else None. Objects in Edit Mode are read from their edit mesh
     (``to_mesh``): the evaluated mesh of an object in Edit Mode holds no faces of its own."""
     carries_states = fingerprint is not None
+    colour_bakes = colour_bakes or {}
     obj = inst.object
     original = obj.original
     editing = original.type == 'MESH' and original.data.is_editmode
@@ -518,7 +519,7 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
         albedo_table = np.array([a if isinstance(a, np.ndarray) else np.zeros(3) for a, _, _ in per_slot])
         emission_table = np.array([e if isinstance(e, np.ndarray) else np.zeros(3) for _, e, _ in per_slot])
         surface = _mesh_surface(builder, reader, name, mesh, loops, tris_vertices(mesh, poly, loops),
-                                slots, per_slot, slot_of_tri)
+                                slots, per_slot, slot_of_tri, fallback=colour_bakes.get(original.session_uid))
         builder.add(name, carries_states, world, tris, albedo_table[slot_of_tri],
                     emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv,
                     -1 if inst.is_instance else original.session_uid, None if inst.is_instance else fingerprint,
@@ -536,16 +537,62 @@ def tris_vertices(mesh, poly, loops):
     return vertex_of_loop[loops]
 
 
-def _mesh_surface(builder, reader, name, mesh, loops, verts, slots, per_slot, slot_of_tri):
+def _colour_bakes(context, reader, warnings):
+    """``{session_uid: (table, material names)}``: Cycles' own DIFFUSE COLOR bake
+    (:data:`.shading.COLOUR_BAKES`) of every visible mesh object whose materials hold nodes LMDP
+    cannot evaluate, and the materials (``name_full``) whose albedo it stands for. Objects that
+    cannot be baked (no UV map, not in Object Mode, linked) keep the socket values, with the
+    reader's warnings."""
+    out = {}
+    view_layer = context.view_layer
+    for obj in list(view_layer.objects):
+        if obj.type != 'MESH' or _is_hidden(obj, view_layer):
+            continue
+        materials = [m for m in slot_materials(obj) if m is not None]
+        for m in materials:
+            reader.material(m)
+        need = {m.name_full for m in materials if reader.unsupported.get(m.name_full)}
+        editable = (obj.library is None and obj.data.library is None
+                    and all(m.library is None and m.override_library is None for m in materials))
+        if not need or not editable or obj.mode != 'OBJECT' or not obj.data.uv_layers or context.mode != 'OBJECT':
+            continue
+        uv = next((l.name for l in obj.data.uv_layers if l.active_render), obj.data.uv_layers[0].name)
+        key = (obj.session_uid, object_fingerprint(obj), uv,
+               tuple(shading.tree_digest(m.node_tree).hexdigest() if m.node_tree else "" for m in materials))
+        try:
+            table = shading.COLOUR_BAKES.table(context, obj, key)
+        except (RuntimeError, ReferenceError) as exc:
+            warnings.append(f"Object '{obj.name}': Cycles' diffuse colour bake failed ({exc}); its "
+                            "materials' unsupported nodes read as their socket values")
+            continue
+        out[obj.session_uid] = (table, need)
+    return out
+
+
+def _mesh_surface(builder, reader, name, mesh, loops, verts, slots, per_slot, slot_of_tri, fallback=None):
     """The ``surface`` argument of :meth:`_SceneBuilder.add` for a mesh whose material slots
-    ``slots`` read as ``per_slot`` (:meth:`.shading.ShadingReader.material`), or None."""
+    ``slots`` read as ``per_slot`` (:meth:`.shading.ShadingReader.material`), or None.
+    ``fallback``: ``(table, material names)`` of the object's Cycles colour bake
+    (:func:`_colour_bakes`): those materials take their albedo from it."""
     index = np.full(len(per_slot), -1, np.int32)
     uv_wanted, attr_wanted = set(), set()
     for s, (mat, (albedo, emission, alpha)) in enumerate(zip(slots, per_slot)):
+        key = mat.name_full if mat is not None else ""
+        if fallback is not None and key in fallback[1]:
+            nodes = ", ".join(sorted({f"'{n}'" for n, _ in reader.unsupported[key]}))
+            message = (f"Material '{mat.name}': {nodes} cannot be evaluated by LMDP; on '{name}' its diffuse "
+                       f"colour is Cycles' own DIFFUSE COLOR bake ({shading.COLOUR_BAKE_RESOLUTION}² texels on "
+                       "the render UV map, interpolated between them)")
+            if message not in reader.warnings:
+                reader.warnings.append(message)
+            baked = textures.ImageTexture(reader.add_table(fallback[0]), reader._uv_index(None), "LINEAR", "EXTEND")
+            albedo = baked if alpha is None else textures.quotient(baked, alpha)   # the bake holds alpha x albedo
+            key = (key, name)
+        else:
+            reader.flush(mat)
         exprs = [x for x in (albedo, emission, alpha) if x is not None and not isinstance(x, np.ndarray)]
         if not exprs:
             continue
-        key = mat.name_full if mat is not None else ""
         index[s] = builder.material_index(key, textures.MaterialShading(
             albedo=None if isinstance(albedo, np.ndarray) else albedo, alpha=alpha,
             emission=None if isinstance(emission, np.ndarray) else emission))
@@ -587,11 +634,14 @@ def extract_scene(context, selected_objects, depsgraph=None):
     selected = {o.session_uid: o for o in (getattr(o, "original", o) for o in selected_objects or ())}
     # Before the depsgraph is evaluated: fingerprints update objects in Edit Mode from their edit mesh.
     fingerprints = {uid: object_fingerprint(o) if o.type == 'MESH' else "" for uid, o in selected.items()}
+    warnings = skipped_mesh_messages(selected_objects)
+    reader = shading.ShadingReader(warnings)
+    # Cycles' colour bakes change the depsgraph: they run before it is evaluated (not at all
+    # when the caller hands one in).
+    colour_bakes = _colour_bakes(context, reader, warnings) if depsgraph is None else {}
     if depsgraph is None:
         depsgraph = context.evaluated_depsgraph_get()
     view_layer = depsgraph.view_layer
-    warnings = skipped_mesh_messages(selected_objects)
-    reader = shading.ShadingReader(warnings)
     world_reader = _MaterialReader(warnings)
     builder = _SceneBuilder()
     instance_count = {}
@@ -611,7 +661,7 @@ def extract_scene(context, selected_objects, depsgraph=None):
         if obj.type == 'LIGHT':
             _add_light(builder, name, inst, warnings, skipped_lights)
         elif obj.type in GEOMETRY_TYPES:
-            if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings):
+            if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings, colour_bakes):
                 captured.add(top.session_uid)
             if not inst.is_instance and mode_holding_mesh(obj.original) == "Sculpt Mode with Dynamic Topology":
                 warnings.append(f"Object '{name}' is in Sculpt Mode with Dynamic Topology, whose strokes "

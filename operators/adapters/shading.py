@@ -243,6 +243,10 @@ class ShadingReader:
         self.uv_names, self.attribute_names = [None], []
         self._materials = {}
         self._owner = ""
+        self._unsupported = []
+        #: name_full -> [(node name, warning)] of the nodes LMDP could not evaluate (read as
+        #: their socket's value): :meth:`flush` warns, or the caller bakes Cycles' colour.
+        self.unsupported = {}
 
     def warn(self, message):
         message = f"{self._owner}: {message}"
@@ -258,8 +262,24 @@ class ShadingReader:
         key = mat.name_full if hasattr(mat, "name_full") else mat.name
         if key not in self._materials:
             self._owner = f"Material '{mat.name}'"
+            self._unsupported = []
             self._materials[key] = self._read(mat)
+            self.unsupported[key] = self._unsupported
         return self._materials[key]
+
+    def flush(self, mat):
+        """Warn about the nodes of ``mat`` that read as their socket's value."""
+        if mat is not None:
+            for _, message in self.unsupported.get(mat.name_full, ()):
+                if message not in self.warnings:
+                    self.warnings.append(message)
+
+    def add_table(self, table):
+        """Index of ``table`` among :attr:`images` (added once)."""
+        if id(table) not in self._image_index:
+            self._image_index[id(table)] = len(self.images)
+            self.images.append(table)
+        return self._image_index[id(table)]
 
     def _read(self, mat):
         tree = mat.node_tree
@@ -384,9 +404,9 @@ class ShadingReader:
             expr = tx.Const(expr.evaluate(_One())[0].astype(np.float64))   # a chain of constants
         if expr is None:
             default = _default(socket, channels)
-            self.warn(f"'{node.name}' ({node.bl_label}) cannot be evaluated by LMDP; "
-                      f"'{socket.node.name}' {socket.name} uses its own value "
-                      f"{tuple(round(float(x), 3) for x in default.value)}")
+            self._unsupported.append((node.name, f"{self._owner}: '{node.name}' ({node.bl_label}) cannot be "
+                                      f"evaluated by LMDP; '{socket.node.name}' {socket.name} uses its own value "
+                                      f"{tuple(round(float(x), 3) for x in default.value)}"))
             return default
         if expr.channels != channels:
             c = tx.constant(expr)
@@ -488,11 +508,8 @@ class ShadingReader:
             self.warn(f"Image Texture '{node.name}' uses {node.interpolation} interpolation; LMDP "
                       "interpolates linearly")
             interpolation = "LINEAR"
-        if id(table) not in self._image_index:
-            self._image_index[id(table)] = len(self.images)
-            self.images.append(table)
         alpha_used = any(not link.is_muted for link in node.outputs["Alpha"].links)
-        return tx.ImageTexture(self._image_index[id(table)], uv[0], interpolation, node.extension,
+        return tx.ImageTexture(self.add_table(table), uv[0], interpolation, node.extension,
                                "color" if out.name == "Color" else "alpha", uv[1], alpha_used)
 
     def _uv(self, socket, stack, implicit=True):
@@ -559,6 +576,74 @@ class _One:
 
     def memo(self, key, compute):
         return compute()
+
+
+# ---- Cycles' own diffuse colour, for node trees LMDP cannot evaluate -------------------------------
+
+#: Resolution of the DIFFUSE COLOR bake that stands in for a material LMDP cannot evaluate.
+COLOUR_BAKE_RESOLUTION = 256
+
+
+def tree_digest(tree, h=None, depth=0):
+    """A digest of what a node tree computes: its nodes (type, name, mute, settings, input
+    values, colour ramps and curves, images), its links, and the node groups it uses."""
+    h = h if h is not None else hashlib.blake2b(digest_size=16)
+    skip = {"name", "label", "location", "width", "height", "dimensions", "select", "show_options",
+            "show_preview", "show_texture", "hide", "color", "use_custom_color", "warning_propagation"}
+    for node in tree.nodes:
+        h.update(f"\0{node.bl_idname}|{node.name}|{node.mute}".encode())
+        for prop in node.bl_rna.properties:
+            if prop.identifier in skip or prop.type not in ('BOOLEAN', 'INT', 'FLOAT', 'ENUM', 'STRING'):
+                continue
+            value = getattr(node, prop.identifier, None)
+            h.update(repr(tuple(value) if hasattr(value, "__len__") and not isinstance(value, str) else value).encode())
+        for socket in node.inputs:
+            value = getattr(socket, "default_value", None)
+            h.update(repr(tuple(value) if hasattr(value, "__len__") and not isinstance(value, str) else value).encode())
+        ramp = getattr(node, "color_ramp", None)
+        if ramp is not None:
+            h.update(repr([(e.position, tuple(e.color)) for e in ramp.elements] + [ramp.interpolation]).encode())
+        mapping = getattr(node, "mapping", None)
+        if mapping is not None and hasattr(mapping, "curves"):
+            h.update(repr([[tuple(p.location) for p in c.points] for c in mapping.curves]).encode())
+        image = getattr(node, "image", None)
+        if image is not None:
+            h.update(repr(ImageCache.version(image)).encode())
+        if node.type == 'GROUP' and node.node_tree is not None and depth < 16:
+            tree_digest(node.node_tree, h, depth + 1)
+    for link in tree.links:
+        h.update(f"\0{link.from_node.name}|{link.from_socket.identifier}|{link.to_node.name}|"
+                 f"{link.to_socket.identifier}|{link.is_muted}".encode())
+    return h
+
+
+class ColourBakes:
+    """Cycles' DIFFUSE COLOR bakes (1 sample: the colour at each texel point, albedo x alpha) of
+    objects on their render UV map, as :class:`~lmdp_addon.textures.ImageTable`; kept until the
+    object's mesh, transform, UV map or materials change (``key``); ``bakes`` counts them."""
+
+    def __init__(self, max_entries=32):
+        self.max_entries = int(max_entries)
+        self.bakes = 0
+        self._tables = OrderedDict()
+
+    def table(self, context, obj, key):
+        if key in self._tables:
+            self._tables.move_to_end(key)
+            return self._tables[key]
+        from .demo_scenes import bake_cycles
+        px = bake_cycles(context, obj, 'DIFFUSE', ('COLOR',), COLOUR_BAKE_RESOLUTION, samples=1, margin=4)
+        px[..., 3] = 1.0
+        table = tx.ImageTable(px, name=f"{obj.name} (Cycles diffuse colour)")
+        self.bakes += 1
+        self._tables[key] = table
+        while len(self._tables) > self.max_entries:
+            self._tables.popitem(last=False)
+        return table
+
+
+#: The add-on's colour bakes (one per Blender session).
+COLOUR_BAKES = ColourBakes()
 
 
 # ---- per-mesh data ----------------------------------------------------------------------------

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from helpers import add_material, select
+from helpers import add_material
 
 
 @pytest.fixture
@@ -231,9 +231,10 @@ def test_textures_are_sampled_and_unsupported_links_are_reported(fresh_scene, ex
     np.testing.assert_allclose(albedo_at_uv(sa, textured, (0.3, 0.25)), (0.2, 0.4, 0.6), atol=1e-6)
     np.testing.assert_allclose(albedo_at_uv(sa, textured, (0.6, 0.75)), (0.6, 0.0, 0.2), atol=1e-6)
     np.testing.assert_allclose(albedo_at_uv(sa, textured, (0.6, 0.5)), (0.4, 0.2, 0.4), atol=1e-6)
-    np.testing.assert_allclose(albedo["Noisy"], (0.1, 0.2, 0.3), atol=1e-6)
+    # The noise is beyond the reader: Cycles' own diffuse colour bake stands in for it.
+    assert not np.allclose(albedo["Noisy"], (0.1, 0.2, 0.3), atol=1e-3)
     assert not any("Material 'Textured'" in w for w in sa.warnings)
-    assert any("Material 'Noisy'" in w and "'Noise Pattern'" in w for w in sa.warnings)
+    assert any("Material 'Noisy'" in w and "'Noise Pattern'" in w and "Cycles" in w for w in sa.warnings)
 
 
 def test_srgb_byte_textures_are_linearised(fresh_scene, extract):

@@ -502,3 +502,54 @@ def test_gltf_alpha_mask_over_a_floor_matches_cycles(fresh_scene, lmdp_ext, demo
     sa = extract.extract_scene(bpy.context, [bpy.data.objects["Floor"]])
     assert sa.surface.has_alpha and not any("Alpha_Mask" in w for w in sa.warnings), sa.warnings
     check_indirect(lmdp_ext, demo, "Floor")
+
+
+# -- node trees beyond the reader: Cycles' own diffuse colour -------------------------------------
+
+def noisy_box():
+    """The tall box's Diffuse BSDF fed by Noise Texture -> Color Ramp (orange to blue), which the
+    reader cannot evaluate."""
+    tree = bpy.data.objects["TallBox"].data.materials[0].node_tree
+    noise = tree.nodes.new("ShaderNodeTexNoise")
+    noise.name = "Grain"
+    noise.inputs["Scale"].default_value = 3.0
+    ramp = tree.nodes.new("ShaderNodeValToRGB")
+    ramp.color_ramp.elements[0].color = (0.9, 0.4, 0.1, 1.0)
+    ramp.color_ramp.elements[1].color = (0.1, 0.3, 0.9, 1.0)
+    tree.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
+    tree.links.new(ramp.outputs["Color"], next(n for n in tree.nodes if n.type == 'BSDF_DIFFUSE').inputs["Color"])
+    return ramp
+
+
+def test_unsupported_nodes_take_cycles_diffuse_colour(fresh_scene, lmdp_ext, demo):
+    """Noise Texture -> Color Ramp: the albedo at the texels is Cycles' 1-sample DIFFUSE COLOR of
+    them up to the interpolation of the 256² stand-in (mean |error| < 0.005), the bake of the
+    floor and the box matches Cycles' DIFFUSE INDIRECT; the stand-in is baked once until the
+    material changes."""
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    texels = lmdp_ext.sub("lmdp_addon.bake.texels")
+    shading = lmdp_ext.sub("operators.adapters.shading")
+    build("CORNELL_BOX", lmdp_ext)
+    ramp = noisy_box()
+    box = bpy.data.objects["TallBox"]
+    bakes = shading.COLOUR_BAKES.bakes
+    sa = extract.extract_scene(bpy.context, [box])
+    assert shading.COLOUR_BAKES.bakes == bakes + 1
+    assert any("'Color Ramp'" in w and "Cycles' own DIFFUSE COLOR" in w for w in sa.warnings), sa.warnings
+    tris = np.flatnonzero(sa.triangle_object == sa.object_names.index("TallBox"))
+    normals, _ = sa.triangle_geometry()
+    ts = texels.rasterize_texels(sa.triangle_uv[tris], sa.corners()[tris], normals[tris], RESOLUTION)
+    ours = sa.albedo_at(tris[ts.triangle], ts.barycentric[:, 1].astype(np.float32),
+                        ts.barycentric[:, 2].astype(np.float32))
+    cycles = demo.bake_cycles(bpy.context, box, 'DIFFUSE', ('COLOR',), RESOLUTION, samples=1)[ts.row, ts.col, :3]
+    error = np.abs(ours - cycles)
+    print(f"noise stand-in: mean |ours - Cycles| {error.mean():.2e}, max {error.max():.2e}, "
+          f"spread of the colour {cycles.std(axis=0)}")
+    assert error.mean() < 0.005
+    extract.extract_scene(bpy.context, [box])
+    assert shading.COLOUR_BAKES.bakes == bakes + 1                      # kept
+    for name in ("Floor", "TallBox"):
+        check_indirect(lmdp_ext, demo, name)
+    ramp.color_ramp.elements[1].color = (0.9, 0.9, 0.2, 1.0)
+    extract.extract_scene(bpy.context, [box])
+    assert shading.COLOUR_BAKES.bakes > bakes + 1                       # the material changed
