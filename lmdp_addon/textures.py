@@ -11,8 +11,9 @@ Conventions are Cycles' (``kernel/svm``, ``kernel/device/cpu/image.h``):
 
 * An image table is ``(H, W, 4)`` float32 RGBA with row 0 at the bottom (Blender's
   ``Image.pixels`` order), so texel (i, j) covers ``v ∈ [i/H, (i+1)/H)``, ``u ∈ [j/W, (j+1)/W)``.
-  ``LINEAR`` interpolates the four texels around ``(u W - ½, v H - ½)``; ``CLOSEST`` takes the
-  texel containing ``(u W, v H)``. Extension ``REPEAT`` wraps, ``EXTEND`` clamps to the edge,
+  ``LINEAR`` interpolates the four texels around ``(u W - ½, v H - ½)``; ``CUBIC`` weighs the
+  16 around it by the uniform cubic B-spline (Cycles' cubic); ``CLOSEST`` takes the texel
+  containing ``(u W, v H)``. Extension ``REPEAT`` wraps, ``EXTEND`` clamps to the edge,
   ``CLIP`` reads transparent black for every texel outside the image (so a linear lookup fades
   out over the half texel beyond the border),
   ``MIRROR`` reflects at every edge.
@@ -34,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 EXTENSIONS = ("REPEAT", "EXTEND", "CLIP", "MIRROR")
-INTERPOLATIONS = ("LINEAR", "CLOSEST")
+INTERPOLATIONS = ("LINEAR", "CLOSEST", "CUBIC")
 MIX_BLENDS = ("MIX", "MULTIPLY", "ADD", "SUBTRACT", "SCREEN", "DIVIDE", "DIFFERENCE", "DARKEN", "LIGHTEN")
 MATH_OPERATIONS = ("ADD", "SUBTRACT", "MULTIPLY", "DIVIDE", "POWER", "MINIMUM", "MAXIMUM", "LESS_THAN",
                    "GREATER_THAN", "ABSOLUTE", "ROUND", "FLOOR")
@@ -84,6 +85,12 @@ def _wrap(i, n, extension):
     return np.clip(i, 0, n - 1), (inside if extension == "CLIP" else None)
 
 
+def _bspline(t):
+    """The four uniform cubic B-spline weights at fraction ``t`` (Cycles' ``cubic_weights``)."""
+    t2, t3 = t * t, t * t * t
+    return ((1 - t) ** 3 / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6, t3 / 6)
+
+
 def sample_image(table, uv, interpolation="LINEAR", extension="REPEAT", unpremultiply=False):
     """(k, 4) float32 linear RGBA of ``table`` at ``uv (k, 2)`` (module docstring): the
     interpolated texels, divided by alpha where 0 < alpha < 1 when ``unpremultiply`` and the
@@ -102,6 +109,20 @@ def sample_image(table, uv, interpolation="LINEAR", extension="REPEAT", unpremul
         out = px[iy, ix]
         if okx is not None:
             out = out * (okx & oky)[:, None]
+    elif interpolation == "CUBIC":
+        x, y = x - np.float32(0.5), y - np.float32(0.5)
+        fx, fy = np.floor(x), np.floor(y)
+        wx, wy = _bspline(x - fx), _bspline(y - fy)
+        x0, y0 = fx.astype(np.int64), fy.astype(np.int64)
+        out = np.zeros((len(uv), 4), np.float32)
+        for j in range(4):                        # 4 x 4 texels, not rays
+            iy, oky = _wrap(y0 + j - 1, h, extension)
+            for i in range(4):
+                ix, okx = _wrap(x0 + i - 1, w, extension)
+                weight = wx[i] * wy[j]
+                if okx is not None:
+                    weight = weight * (okx & oky)
+                out += weight[:, None] * px[iy, ix]
     else:
         x, y = x - np.float32(0.5), y - np.float32(0.5)
         fx, fy = np.floor(x), np.floor(y)

@@ -504,6 +504,8 @@ class ShadingReader:
         if not image.is_float and space not in ('sRGB', 'Non-Color', 'Linear Rec.709', 'Raw', 'Linear'):
             self.warn(f"image '{image.name}' has colour space '{space}', which LMDP reads as linear")
         interpolation = node.interpolation.upper()
+        if interpolation == "SMART":
+            interpolation = "CUBIC"          # Cycles' SVM: Smart is Cubic
         if interpolation not in tx.INTERPOLATIONS:
             self.warn(f"Image Texture '{node.name}' uses {node.interpolation} interpolation; LMDP "
                       "interpolates linearly")

@@ -220,3 +220,14 @@ def test_zero_colour_channels_follow_cycles_pass_division():
     colour = np.array([[0.5, 0.5, 0.5], [0.6, 0.0, 0.0], [0.0, 0.3, 0.1], [0.0, 0.0, 0.0]], np.float32)
     np.testing.assert_allclose(_even_colour(L.copy(), colour),
                                [[0.2, 0.4, 0.6], [0.2, 0.2, 0.2], [0.5, 0.4, 0.6], [0.0, 0.0, 0.0]], rtol=1e-6)
+
+
+def test_cubic_is_cycles_b_spline():
+    """The cubic B-spline weights sum to 1 and reproduce a linear ramp inside the image; at a
+    texel centre the value is (a + 4 b + c) / 6 of the texel and its neighbours."""
+    ramp = table([[[i / 7.0] * 3 for i in range(8)]])
+    u = np.array([[0.3, 0.5], [0.55, 0.5], [0.61, 0.5]], np.float32)
+    np.testing.assert_allclose(at(ramp, u, "CUBIC", "EXTEND"), u[:, 0] * 8 / 7 - 0.5 / 7, atol=1e-6)
+    spike = table([[[0.0] * 3, [1.0] * 3, [0.0] * 3, [0.0] * 3]])
+    np.testing.assert_allclose(at(spike, [[0.375, 0.5]], "CUBIC"), [4 / 6], atol=1e-6)
+    np.testing.assert_allclose(at(spike, [[0.125, 0.5]], "CUBIC"), [1 / 6], atol=1e-6)
