@@ -72,6 +72,15 @@ class ImageTable:
         if px.ndim != 3 or px.shape[2] != 4 or px.shape[0] < 1 or px.shape[1] < 1:
             raise ValueError(f"image table '{self.name}' must be (H, W, 4), not {px.shape}")
         self.pixels = np.ascontiguousarray(px)
+        self._digest = None
+
+    def digest(self):
+        """bytes: digest of the table (computed once: a table is not changed after it is made)."""
+        if self._digest is None:
+            h = hashlib.blake2b(self.pixels.tobytes(), digest_size=16)
+            h.update(bytes([self.srgb, self.premultiplied]))
+            self._digest = h.digest()
+        return self._digest
 
 
 def _wrap(i, n, extension):
@@ -627,7 +636,7 @@ class SurfaceTextures:
         """bytes: digest of everything that changes what the surfaces show."""
         h = hashlib.blake2b(digest_size=16)
         for table in self.images:
-            h.update(table.pixels.tobytes() + bytes([table.srgb]))
+            h.update(table.digest())
         for array in list(self.uv_maps) + list(self.attributes) + [self.triangle_material]:
             h.update(np.ascontiguousarray(array).tobytes())
         h.update(repr(self.materials).encode() + repr(self.transparent_max_bounces).encode())

@@ -634,7 +634,17 @@ class ColourBakes:
             self._tables.move_to_end(key)
             return self._tables[key]
         from .demo_scenes import bake_cycles
-        px = bake_cycles(context, obj, 'DIFFUSE', ('COLOR',), COLOUR_BAKE_RESOLUTION, samples=1, margin=4)
+        # The add-on's own MULTIPLY hook-up multiplies the surface colour by the lightmap: muted
+        # for the bake (a muted Mix node passes its A input), so the bake sees the surface.
+        hooks = [n for slot in obj.material_slots if slot.material is not None and slot.material.node_tree
+                 for n in slot.material.node_tree.nodes if n.name == NODE_MULTIPLY and not n.mute]
+        try:
+            for node in hooks:
+                node.mute = True
+            px = bake_cycles(context, obj, 'DIFFUSE', ('COLOR',), COLOUR_BAKE_RESOLUTION, samples=1, margin=4)
+        finally:
+            for node in hooks:
+                node.mute = False
         px[..., 3] = 1.0
         table = tx.ImageTable(px, name=f"{obj.name} (Cycles diffuse colour)")
         self.bakes += 1

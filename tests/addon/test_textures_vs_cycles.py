@@ -572,6 +572,13 @@ def test_unsupported_nodes_take_cycles_diffuse_colour(fresh_scene, lmdp_ext, dem
     assert shading.COLOUR_BAKES.bakes == bakes + 1                      # kept
     for name in ("Floor", "TallBox"):
         check_indirect(lmdp_ext, demo, name)
+    # The add-on's MULTIPLY hook-up (lightmap x surface colour) stays invisible to the stand-in.
+    select([box])
+    assert bpy.ops.lmdp.bake(hook_up='MULTIPLY') == {'FINISHED'}
+    hooked = extract.extract_scene(bpy.context, [box])
+    again = hooked.albedo_at(tris[ts.triangle], ts.barycentric[:, 1].astype(np.float32),
+                             ts.barycentric[:, 2].astype(np.float32))
+    np.testing.assert_allclose(again, ours, atol=1e-6)
     ramp.color_ramp.elements[1].color = (0.9, 0.9, 0.2, 1.0)
     extract.extract_scene(bpy.context, [box])
     assert shading.COLOUR_BAKES.bakes > bakes + 1                       # the material changed
