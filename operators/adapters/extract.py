@@ -559,11 +559,18 @@ def _colour_bakes(context, reader, warnings):
         uv = next((l.name for l in obj.data.uv_layers if l.active_render), obj.data.uv_layers[0].name)
         key = (obj.session_uid, object_fingerprint(obj), uv,
                tuple(shading.tree_digest(m.node_tree).hexdigest() if m.node_tree else "" for m in materials))
+        # Under the PREVIEW hook-up Cycles would bake the preview's colour: only a kept bake serves.
+        previewed = slot_materials(obj) != [slot.material for slot in obj.material_slots]
         try:
-            table = shading.COLOUR_BAKES.table(context, obj, key)
+            table = shading.COLOUR_BAKES.table(context, obj, key, bake=not previewed)
         except (RuntimeError, ReferenceError) as exc:
             warnings.append(f"Object '{obj.name}': Cycles' diffuse colour bake failed ({exc}); its "
                             "materials' unsupported nodes read as their socket values")
+            continue
+        if table is None:
+            warnings.append(f"Object '{obj.name}' shows LMDP's lightmap preview, so Cycles cannot bake the "
+                            "colour of its materials' unsupported nodes (they read as their socket values): "
+                            "remove the hook-up (LMDP > Remove Bake Hook-up) and run again")
             continue
         out[obj.session_uid] = (table, need)
     return out

@@ -629,10 +629,13 @@ class ColourBakes:
         self.bakes = 0
         self._tables = OrderedDict()
 
-    def table(self, context, obj, key):
+    def table(self, context, obj, key, bake=True):
+        """The table of ``obj`` for ``key``; baked now if not kept (None when ``bake`` is off)."""
         if key in self._tables:
             self._tables.move_to_end(key)
             return self._tables[key]
+        if not bake:
+            return None
         from .demo_scenes import bake_cycles
         # The add-on's own MULTIPLY hook-up multiplies the surface colour by the lightmap: muted
         # for the bake (a muted Mix node passes its A input), so the bake sees the surface.

@@ -579,6 +579,15 @@ def test_unsupported_nodes_take_cycles_diffuse_colour(fresh_scene, lmdp_ext, dem
     again = hooked.albedo_at(tris[ts.triangle], ts.barycentric[:, 1].astype(np.float32),
                              ts.barycentric[:, 2].astype(np.float32))
     np.testing.assert_allclose(again, ours, atol=1e-6)
+    # Under the PREVIEW hook-up Cycles would bake the preview: the kept bake serves, else a warning.
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
+    assert bpy.ops.lmdp.bake(hook_up='PREVIEW') == {'FINISHED'}
+    previewed = extract.extract_scene(bpy.context, [box])
+    np.testing.assert_allclose(previewed.albedo_at(tris[ts.triangle], ts.barycentric[:, 1].astype(np.float32),
+                                                   ts.barycentric[:, 2].astype(np.float32)), ours, atol=1e-6)
+    shading.COLOUR_BAKES._tables.clear()
+    assert any("TallBox" in w and "preview" in w for w in extract.extract_scene(bpy.context, [box]).warnings)
+    assert bpy.ops.lmdp.remove_bake_hookup() == {'FINISHED'}
     ramp.color_ramp.elements[1].color = (0.9, 0.9, 0.2, 1.0)
     extract.extract_scene(bpy.context, [box])
     assert shading.COLOUR_BAKES.bakes > bakes + 1                       # the material changed
