@@ -214,7 +214,8 @@ class EmitterSampler:
             vis, passed = ok[~caster.occluded(rows(origin, ok), rows(dl, ok), tmax)], None
         else:
             T = self.transparency.transmittance(caster, rows(origin, ok), rows(dl, ok), tmax)
-            vis, passed = ok[T > 0], T[T > 0]
+            seen = (T.max(axis=1) if T.ndim == 2 else T) > 0
+            vis, passed = ok[seen], T[seen]
         if len(vis) == 0:
             return out, len(ok)
         ev = np.take(e, vis)
@@ -226,9 +227,11 @@ class EmitterSampler:
                               / np.maximum(np.take(solid_angle, np.take(vis, solid)), 1e-300))
         q = np.take(cos_y, vis) * np.float32(INV_PI)
         weight = q / (p_light + q) if mis else q / p_light
-        if passed is not None:
+        if passed is not None and passed.ndim == 1:
             weight = weight * passed
         out[vis] = rows(self.radiance32, ev) * weight[:, None]
+        if passed is not None and passed.ndim == 2:    # tinted transparent surfaces on the way
+            out[vis] *= passed
         return out, len(ok)
 
     def _connect(self, origin, o, e, close, r1, r2):

@@ -552,6 +552,8 @@ def total(a, b):
 def lerp(t, a, b):
     """``(1 - t) a + t b`` with ``t`` a value in [0, 1]."""
     ct, ca, cb = constant(t), constant(a), constant(b)
+    if ca is not None and cb is not None and ca.shape == cb.shape and np.all(ca == cb):
+        return a                              # the same on both sides, whatever t is
     if ct is not None and ca is not None and cb is not None:
         f = float(np.clip(ct[0], 0.0, 1.0))
         return Const((1 - f) * ca + f * cb)
@@ -597,11 +599,15 @@ class MaterialShading:
     """What a material shows at a point: the diffuse ``albedo`` (an expression of 3 channels:
     the diffuse reflectance where the surface is opaque) and the ``alpha`` (1 channel: the
     probability that a ray stops at the surface, 1 - the transparent closures' weight), or
-    None: constant (then the triangle's ``triangle_albedo`` / opaque)."""
+    None: constant (then the triangle's ``triangle_albedo`` / opaque); ``emission`` (3
+    channels, radiance) of a textured emitter, which the scene averages per triangle; ``tint``
+    (3 channels): the colour a ray that passes the surface carries (the transparent weight
+    divided by its largest channel), None: white."""
 
     albedo: object = None
     alpha: object = None
     emission: object = None
+    tint: object = None
 
 
 @dataclass
@@ -629,7 +635,7 @@ class SurfaceTextures:
             self.triangle_material = np.asarray(self.triangle_material, dtype=np.int32)
         self._flags = {which: np.array([getattr(m, which) is not None for m in self.materials] + [False],
                                        dtype=bool)                   # index -1: constant
-                       for which in ("albedo", "alpha", "emission")}
+                       for which in ("albedo", "alpha", "emission", "tint")}
         self._textured, self._transparent = self._flags["albedo"], self._flags["alpha"]
 
     def fingerprint(self):
@@ -645,6 +651,15 @@ class SurfaceTextures:
     @property
     def has_albedo(self):
         return bool(self._textured[:-1].any())
+
+    @property
+    def has_tint(self):
+        return bool(self._flags["tint"][:-1].any())
+
+    def tint(self, tri, bu, bv):
+        """(k, 3) float32 colour carried by rays that pass the surfaces at the points (1: white)."""
+        out = np.ones((len(tri), 3), np.float32)
+        return np.maximum(self._evaluate("tint", tri, bu, bv, out), 0.0)
 
     @property
     def has_alpha(self):

@@ -56,13 +56,15 @@ class Transparency:
 
     def intersect(self, caster, origin, d, rng):
         """Closest hits that stop the rays ``origin (k, 3)``, ``d (k, 3)``: ``(tri, dist, bu,
-        bv, extra_rays)`` as :meth:`RayCaster.intersect` with barycentrics (``tri`` -1: the ray
-        escaped, :data:`ABSORBED`: absorbed), ``dist`` from ``origin``; ``extra_rays`` the
-        rays traced beyond the first."""
+        bv, extra_rays, weight)`` as :meth:`RayCaster.intersect` with barycentrics (``tri`` -1:
+        the ray escaped, :data:`ABSORBED`: absorbed), ``dist`` from ``origin``; ``extra_rays``
+        the rays traced beyond the first; ``weight (k, 3)`` the product of the tints of the
+        surfaces passed (None when no surface is tinted)."""
         origin = np.asarray(origin, dtype=np.float32)
         d = np.asarray(d, dtype=np.float32)
         tri, dist, bu, bv = caster.intersect(origin, d, barycentrics=True)
         tri, dist, bu, bv = tri.copy(), dist.copy(), bu.copy(), bv.copy()
+        weight = np.ones((len(tri), 3), np.float32) if self.surface.has_tint else None
         extra = 0
         live = np.arange(len(tri))
         for layer in range(self.max_bounces + 1):
@@ -78,22 +80,26 @@ class Transparency:
                 tri[passed] = ABSORBED
                 dist[passed] = np.inf
                 break
+            if weight is not None:
+                weight[passed] *= self.surface.tint(tri[passed], bu[passed], bv[passed])
             start = self._far_side(caster, tri[passed], bu[passed], bv[passed], d[passed])
             t2, d2, u2, v2 = caster.intersect(start, d[passed], barycentrics=True)
             extra += len(passed)
             dist[passed] = np.where(t2 >= 0, dist[passed] + d2, np.float32(np.inf))
             tri[passed], bu[passed], bv[passed] = t2, u2, v2
             live = passed
-        return tri, dist, bu, bv, extra
+        return tri, dist, bu, bv, extra, weight
 
     def transmittance(self, caster, origin, d, tmax):
         """(k,) float32 fraction of light that reaches ``origin + tmax d`` from along the
         segments (1: unoccluded, 0: blocked; in between: ∏ (1 - alpha) of the transparent
-        surfaces crossed)."""
+        surfaces crossed); (k, 3) with tinted surfaces: ∏ (1 - alpha) tint, Cycles'
+        transparent weight."""
         origin = np.asarray(origin, dtype=np.float32)
         d = np.asarray(d, dtype=np.float32)
         left = np.asarray(tmax, dtype=np.float32).copy()
-        T = np.ones(len(origin), np.float32)
+        tinted = self.surface.has_tint
+        T = np.ones((len(origin), 3) if tinted else len(origin), np.float32)
         live = np.flatnonzero(caster.occluded(origin, d, left))   # the unoccluded need no more
         o = origin[live]
         for layer in range(self.max_bounces + 1):
@@ -109,8 +115,13 @@ class Transparency:
                 break
             if len(k) == 0:
                 break
-            T[live[k]] *= 1.0 - self.surface.alpha(tri[k], bu[k], bv[k])
-            k = k[T[live[k]] > 0]
+            passes = 1.0 - self.surface.alpha(tri[k], bu[k], bv[k])
+            if tinted:
+                T[live[k]] *= passes[:, None] * self.surface.tint(tri[k], bu[k], bv[k])
+                k = k[T[live[k]].max(axis=1) > 0]
+            else:
+                T[live[k]] *= passes
+                k = k[T[live[k]] > 0]
             o = self._far_side(caster, tri[k], bu[k], bv[k], d[live[k]])
             left[live[k]] -= dist[k]
             live = live[k]

@@ -187,10 +187,11 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         owner = np.repeat(ids, R)
         d = cosine_directions(shading[owner].astype(np.float32), u, stratified=True)
         origin = lifted[owner].astype(np.float32)
+        tint = None
         if lights.transparency is None:
             tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
         else:   # transparent surfaces pass rays with probability 1 - alpha (``transparency``)
-            tri, _, bu, bv, _ = lights.transparency.intersect(caster, origin, d, rng)
+            tri, _, bu, bv, _, tint = lights.transparency.intersect(caster, origin, d, rng)
         hit = np.flatnonzero(tri >= 0)
         if smooth:   # shading-normal cosine rays below the geometric surface are absorbed (tracer)
             hit = hit[np.einsum("ij,ij->i", states.normals[owner[hit]], d[hit]) > 0]
@@ -207,6 +208,8 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
                                                     geometric=ng)[0]
         else:
             value = scene.albedo_at(t, bu[hit], bv[hit]) * lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+        if tint is not None:
+            value = value * tint[hit]
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R

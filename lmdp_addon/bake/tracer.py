@@ -180,8 +180,10 @@ class IndirectTracer:
             if self.transparency is None:
                 tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
             else:
-                tri, dist, bu, bv, passes = self.transparency.intersect(self.caster, origin, d, rng)
+                tri, dist, bu, bv, passes, tint = self.transparency.intersect(self.caster, origin, d, rng)
                 stats.rays += passes
+                if tint is not None:     # the colour of the tinted surfaces passed
+                    beta = beta * tint
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2:

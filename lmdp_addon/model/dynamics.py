@@ -36,6 +36,7 @@ from ..lights import EmitterSampler
 from .locator import StateLocator, buried_points
 from .patterns import DirectionPatterns, LightPatterns
 from ..raycast import RayCaster
+from ..scene_arrays import LUMINANCE
 from ..transparency import ABSORBED
 
 #: Column roles after the point columns.
@@ -395,6 +396,8 @@ class _DynamicsBuild:
             passed = ~caster.occluded(self.lifted[ids][owner], omega_live, tmax)
         else:   # transparent occluders let 1 - alpha through (Cycles' transparent shadows)
             passed = self.sampler.transparency.transmittance(caster, self.lifted[ids][owner], omega_live, tmax)
+            if passed.ndim == 2:     # tinted: the LMDP's transitions carry the luminance
+                passed = passed.astype(np.float64) @ LUMINANCE
         transmitted = passed[passed > 0].astype(np.float64)
         live, owner = live[passed > 0], owner[passed > 0]
         k = np.maximum(stratum_of_local_direction(local.reshape(-1, 3)[live], states.strata_u,

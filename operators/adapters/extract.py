@@ -602,7 +602,8 @@ def _mesh_surface(builder, reader, name, mesh, loops, verts, slots, per_slot, sl
             continue
         index[s] = builder.material_index(key, textures.MaterialShading(
             albedo=None if isinstance(albedo, np.ndarray) else albedo, alpha=alpha,
-            emission=None if isinstance(emission, np.ndarray) else emission))
+            emission=None if isinstance(emission, np.ndarray) else emission,
+            tint=reader.tints.get(mat.name_full) if mat is not None else None))
         for x in exprs:
             found = textures.references(x)
             uv_wanted |= {(i, mat) for i in found["uv"]}

@@ -247,6 +247,8 @@ class ShadingReader:
         #: name_full -> [(node name, warning)] of the nodes LMDP could not evaluate (read as
         #: their socket's value): :meth:`flush` warns, or the caller bakes Cycles' colour.
         self.unsupported = {}
+        #: name_full -> the colour (expression) a ray that passes the material carries, or None (white)
+        self.tints = {}
 
     def warn(self, message):
         message = f"{self._owner}: {message}"
@@ -263,8 +265,10 @@ class ShadingReader:
         if key not in self._materials:
             self._owner = f"Material '{mat.name}'"
             self._unsupported = []
+            self._tint = None
             self._materials[key] = self._read(mat)
             self.unsupported[key] = self._unsupported
+            self.tints[key] = self._tint
         return self._materials[key]
 
     def flush(self, mat):
@@ -291,15 +295,29 @@ class ShadingReader:
                       "LMDP uses albedo 0 (no emission)")
             return np.zeros(3), np.zeros(3), None
         D, E, Tr = self.shader(output.inputs["Surface"], ())
-        alpha = None
-        if not (tx.constant(Tr) is not None and tx.constant(Tr)[0] <= 0):
-            alpha = tx.one_minus(Tr)
+        alpha = tint = None
+        c = tx.constant(Tr)
+        if c is None or np.max(c) > 0:
+            # Rays pass with probability p = the largest channel of the transparent weight Tr
+            # and then carry Tr / p (1 for a grey Tr); they stop with 1 - p.
+            if Tr.channels == 1 or (c is not None and np.ptp(c) == 0):
+                p = Tr if Tr.channels == 1 else tx.Const(c[:1])
+            else:
+                p = tx.Math("MAXIMUM", tx.Math("MAXIMUM", tx.Separate(Tr, 0), tx.Separate(Tr, 1)),
+                            tx.Separate(Tr, 2))
+                p = tx.Math("MINIMUM", p, _ONE) if c is None else tx.Const([min(float(np.max(c)), 1.0)])
+                tint = tx.quotient(Tr, p)
+            alpha = tx.one_minus(p)
             D = tx.quotient(D, alpha)
         albedo = tx.constant(D)
         emission = tx.constant(E)
+        if alpha is not None and (emission is None or np.any(emission > 0)):
+            self.warn("emits light and is partly transparent: rays that pass it do not see its emission "
+                      "(light sampling does), so its light is underestimated where alpha < 1")
         if emission is None:
             self.warn("its emission is textured: LMDP averages it over each triangle (emitters are "
                       "uniform per triangle)")
+        self._tint = tint
         return (np.clip(albedo, 0.0, 1.0) if albedo is not None else D,
                 np.maximum(emission, 0.0) if emission is not None else E, alpha)
 
@@ -333,12 +351,7 @@ class ShadingReader:
                 self.warn(f"Add Shader '{node.name}' sums its inputs' albedo above 1 (clipped to 1)")
             return D, tx.total(a[1], b[1]), tx.total(a[2], b[2])
         if t == 'BSDF_TRANSPARENT':
-            colour = self.colour(node.inputs["Color"], stack)
-            c = tx.constant(colour)
-            if c is None or np.ptp(c) > 1e-6:
-                self.warn(f"Transparent BSDF '{node.name}' has a coloured or textured Color; LMDP "
-                          "lets its luminance through (no tint)")
-            return _BLACK3, _BLACK3, tx.Luminance(colour) if c is None else tx.Const([float(c @ tx.LUMINANCE32)])
+            return _BLACK3, _BLACK3, self.colour(node.inputs["Color"], stack)
         if t in ('HOLDOUT', 'BSDF_REFRACTION'):
             self.warn(f"'{node.name}' ({node.bl_label}) cannot be modelled; the surface is treated as "
                       "black (absorbing)")

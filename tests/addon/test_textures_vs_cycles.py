@@ -325,6 +325,33 @@ def test_solved_modes_see_textures_and_alpha(fresh_scene, lmdp_ext, demo, scene,
     check_indirect(lmdp_ext, demo, "Floor", mode=mode)
 
 
+def test_tinted_transparent_leaf_over_a_floor_matches_cycles(fresh_scene, lmdp_ext, demo):
+    """A Mix Shader of a Diffuse BSDF and an orange Transparent BSDF (factor from the leaf image's
+    alpha, so the cut-out parts are fully transparent): rays that pass carry the colour."""
+    build("CORNELL_BOX", lmdp_ext)
+    leaf = leaf_plane()
+    tree = leaf.data.materials[0].node_tree
+    tex = next(n for n in tree.nodes if n.type == 'TEX_IMAGE')
+    output = tree.get_output_node('CYCLES')
+    diffuse = tree.nodes.new("ShaderNodeBsdfDiffuse")
+    diffuse.inputs["Color"].default_value = (0.2, 0.7, 0.2, 1.0)
+    clear = tree.nodes.new("ShaderNodeBsdfTransparent")
+    clear.inputs["Color"].default_value = (0.95, 0.45, 0.1, 1.0)
+    invert = tree.nodes.new("ShaderNodeMath")
+    invert.operation = 'SUBTRACT'
+    invert.inputs[0].default_value = 1.0
+    tree.links.new(tex.outputs["Alpha"], invert.inputs[1])
+    mix = tree.nodes.new("ShaderNodeMixShader")
+    tree.links.new(invert.outputs[0], mix.inputs["Fac"])
+    tree.links.new(diffuse.outputs[0], mix.inputs[1])
+    tree.links.new(clear.outputs[0], mix.inputs[2])
+    tree.links.new(mix.outputs[0], output.inputs["Surface"])
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    sa = extract.extract_scene(bpy.context, [bpy.data.objects["Floor"]])
+    assert sa.surface.has_tint and not any("Leaf" in w for w in sa.warnings), sa.warnings
+    check_indirect(lmdp_ext, demo, "Floor")
+
+
 # -- the image cache ------------------------------------------------------------------------------
 
 def test_images_are_read_once_until_they_change(fresh_scene, lmdp_ext, tmp_path):

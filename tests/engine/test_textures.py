@@ -162,7 +162,8 @@ def test_rays_stop_with_probability_alpha_and_are_absorbed_past_the_limit():
     n = 40_000
     origin = np.tile(np.float32([0.1, -0.15, 0.5]), (n, 1))
     up = np.tile(np.float32([0.0, 0.0, 1.0]), (n, 1))
-    tri, dist, bu, bv, extra = t.intersect(caster, origin, up, np.random.default_rng(1))
+    tri, dist, bu, bv, extra, tint = t.intersect(caster, origin, up, np.random.default_rng(1))
+    assert tint is None
     leaf = np.isin(scene.triangle_object[np.maximum(tri, 0)], [scene.object_names.index(f"Leaf{k}")
                                                                for k in range(3)]) & (tri >= 0)
     first = leaf & (np.abs(dist - 0.25) < 1e-4)
