@@ -618,3 +618,31 @@ def test_unsupported_nodes_take_cycles_diffuse_colour(fresh_scene, lmdp_ext, dem
     ramp.color_ramp.elements[1].color = (0.9, 0.9, 0.2, 1.0)
     extract.extract_scene(bpy.context, [box])
     assert shading.COLOUR_BAKES.bakes > bakes + 1                       # the material changed
+
+
+GLTF_EMISSION = "/work/fp/gltf/14_emission_strength/14_emission_strength.gltf"
+
+
+@pytest.mark.skipif(not os.path.exists(GLTF_EMISSION), reason="the glTF sample is not on this machine")
+def test_gltf_emission_strength_matches_cycles(fresh_scene, lmdp_ext, demo):
+    """glTF emissive factors, KHR_materials_emissive_strength and the spec-gloss node groups as
+    Blender's importer builds them: the radiance of every constant emitter is Cycles' EMIT bake
+    at its texels (to 1e-5); textured ones are their per-triangle mean (within 10 % of Cycles'
+    texel mean) with a warning."""
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    texels = lmdp_ext.sub("lmdp_addon.bake.texels")
+    assert bpy.ops.import_scene.gltf(filepath=GLTF_EMISSION) == {'FINISHED'}
+    objects = [o for o in bpy.data.objects if o.type == 'MESH']
+    sa = extract.extract_scene(bpy.context, objects)
+    normals, _ = sa.triangle_geometry()
+    for obj in objects:
+        tris = np.flatnonzero(sa.triangle_object == sa.object_names.index(obj.name))
+        ts = texels.rasterize_texels(sa.triangle_uv[tris], sa.corners()[tris], normals[tris], 8)
+        ours = sa.triangle_emission[tris[ts.triangle]].astype(np.float64)
+        cycles = demo.bake_cycles(bpy.context, obj, 'EMIT', (), 8, samples=1)[ts.row, ts.col, :3]
+        textured = any(f"Material '{obj.data.materials[0].name}': its emission is textured" in w for w in sa.warnings)
+        print(f"{obj.name}: ours {ours.mean(axis=0)} Cycles {cycles.mean(axis=0)} textured {textured}")
+        if textured:
+            np.testing.assert_allclose(ours.mean(axis=0), cycles.mean(axis=0), rtol=0.1, atol=1e-6)
+        else:
+            np.testing.assert_allclose(ours, cycles, rtol=1e-5, atol=1e-6)
