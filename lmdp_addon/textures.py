@@ -679,8 +679,11 @@ class SurfaceTextures:
         bu = np.asarray(bu, dtype=np.float32)
         bv = np.asarray(bv, dtype=np.float32)
         sub = mats[wanted]
-        for m in np.unique(sub):                        # one pass per material, not per ray
-            rows = wanted[sub == m]
+        order = np.argsort(sub, kind="stable")
+        starts = np.flatnonzero(np.diff(sub[order])) + 1
+        for group in np.split(order, starts):           # one pass per material, not per ray
+            m = sub[group[0]]
+            rows = wanted[group]
             expr = getattr(self.materials[m], which)
             points = _Points(self, tri[rows], bu[rows], bv[rows])
             out[rows] = as_channels(expr.evaluate(points), out.shape[1])
