@@ -374,13 +374,15 @@ class Lamps:
         w = np.where(front, self.area[lamp] * cos_l / np.where(t > 0, t, 1.0) ** 2 * atten, 0.0)
         return di, t, w
 
-    def next_event(self, points, normals, rng, caster, lift=None, geometric=None):
+    def next_event(self, points, normals, rng, caster, lift=None, geometric=None, transparency=None):
         """``(values (k, 3) float32, shadow rays)``: the lamps' direct light D(y) = (1/π) ∫ L
         cos θ dω at surface points y (one sample of every lamp, light sampling alone: BSDF rays
         never hit lamps, no MIS). ``caster``, ``lift`` and ``geometric`` as
         :meth:`~lmdp_addon.lights.EmitterSampler.next_event`: shadow rays leave the points
         lifted along ``geometric`` (default ``normals``) by ``lift (k,)``, directions below the
-        geometric surface give 0. No random numbers are drawn without lamps."""
+        geometric surface give 0; ``transparency`` (:class:`~lmdp_addon.transparency.Transparency`
+        or None) lets shadow rays through cut-outs with ∏ (1 − alpha). No random numbers are
+        drawn without lamps."""
         k = len(points)
         out = np.zeros((k, 3), np.float32)
         L = len(self.names)
@@ -406,9 +408,11 @@ class Lamps:
         if geometric is not None:
             valid &= np.einsum("ij,ij->i", np.asarray(geometric, dtype=np.float64)[owner], d) > 0
         ok = np.flatnonzero(valid)
-        visible, rays = self._visible(caster, lifted[owner[ok]], d[ok], dist[ok], lamp[ok])
-        ok = ok[visible]
+        passed, rays = self._visible(caster, lifted[owner[ok]], d[ok], dist[ok], lamp[ok], transparency)
+        seen = (passed.max(axis=1) if passed.ndim == 2 else passed) > 0
+        ok, passed = ok[seen], passed[seen]
         value = self.emission[lamp[ok]] * (weight[ok] * cos[ok] * INV_PI)[:, None]
+        value = value * (passed if passed.ndim == 2 else passed[:, None])
         for ch in range(3):
             out[:, ch] = np.bincount(owner[ok], weights=value[:, ch], minlength=k)
         return out, rays
@@ -446,18 +450,25 @@ class Lamps:
         lamp = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), L - 1)
         return lamp, p[np.arange(k), lamp]
 
-    def _visible(self, caster, origins, d, dist, lamp):
-        """(k,) bool: the shadow rays that reach their lamps (lamps without ``use_shadow`` are
-        never blocked), and the number of rays traced."""
+    def _visible(self, caster, origins, d, dist, lamp, transparency=None):
+        """The fraction of each shadow ray's light that reaches its lamp, (k,) float64 (1 or 0
+        through opaque geometry; ∏ (1 − alpha) through ``transparency``'s cut-outs, (k, 3) when
+        they are tinted; lamps without ``use_shadow`` are never blocked), and the number of rays
+        traced."""
         shadow = np.flatnonzero(self.cast_shadow[lamp])
-        visible = np.ones(len(lamp), dtype=bool)
-        if len(shadow):
-            tmax = np.minimum(dist[shadow] * (1.0 - SHADOW_SHORTEN), SUN_DISTANCE)
-            visible[shadow] = ~caster.occluded(origins[shadow].astype(np.float32),
-                                               d[shadow].astype(np.float32), tmax.astype(np.float32))
-        return visible, len(shadow)
+        if len(shadow) == 0:
+            return np.ones(len(lamp)), 0
+        tmax = np.minimum(dist[shadow] * (1.0 - SHADOW_SHORTEN), SUN_DISTANCE).astype(np.float32)
+        o, ds = origins[shadow].astype(np.float32), d[shadow].astype(np.float32)
+        if transparency is None:
+            passed = (~caster.occluded(o, ds, tmax)).astype(np.float64)
+        else:
+            passed = np.asarray(transparency.transmittance(caster, o, ds, tmax), dtype=np.float64)
+        out = np.ones((len(lamp),) + passed.shape[1:])
+        out[shadow] = passed
+        return out, len(shadow)
 
-    def transitions(self, origins, frames, samples, rng, caster):
+    def transitions(self, origins, frames, samples, rng, caster, transparency=None):
         """The build's transitions into the lamp terminals (thesis eq. 3.1) from the lifted
         state points ``origins (n, 3)`` with frames ``(n, 3, 3)`` (rows t, b, n):
         ``(owner (k,), lamp (k,), local directions (k, 3), mass (k,))`` of every unblocked light
@@ -481,7 +492,9 @@ class Lamps:
         d, dist, weight = self.connect(origins[owner], normals[owner], lamp, u)
         local = np.einsum("kij,kj->ki", frames[owner], d)
         valid = np.flatnonzero((local[:, 2] > 0) & (weight > 0) & (dist > 0))
-        visible, _ = self._visible(caster, origins[owner[valid]], d[valid], dist[valid], lamp[valid])
-        ok = valid[visible]
-        mass = weight[ok] * local[ok, 2] * INV_PI / count[ok]
+        passed, _ = self._visible(caster, origins[owner[valid]], d[valid], dist[valid], lamp[valid], transparency)
+        if passed.ndim == 2:     # tinted cut-outs: the LMDP's transitions carry the luminance
+            passed = passed @ np.array([0.2126, 0.7152, 0.0722])
+        ok, passed = valid[passed > 0], passed[passed > 0]
+        mass = weight[ok] * local[ok, 2] * INV_PI / count[ok] * passed
         return owner[ok], lamp[ok], local[ok], mass

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .sampling import GOLDEN, dot, dot3, rows, spherical_triangle_sample, spherical_triangle_solid_angle
+from .transparency import Transparency
 
 INV_PI = 1.0 / np.pi
 
@@ -65,6 +66,8 @@ class EmitterSampler:
         self.e1 = corners[:, 1] - corners[:, 0]
         self.e2 = corners[:, 2] - corners[:, 0]
         self.two_sided = scene.triangle_emission_two_sided[self.triangles]
+        #: Transparent surfaces attenuate shadow rays by 1 - alpha (None: every surface opaque).
+        self.transparency = Transparency.of(scene)
         self._power_tables(scene, corners, normals)
 
     def _power_tables(self, scene, c, normals):
@@ -207,8 +210,12 @@ class EmitterSampler:
         if len(ok) == 0:
             return out, 0
         tmax = caster.shadow_distance(np.take(dist, ok), np.take(self.triangles, np.take(e, ok)))
-        blocked = caster.occluded(rows(origin, ok), rows(dl, ok), tmax)
-        vis = ok[~blocked]
+        if self.transparency is None:
+            vis, passed = ok[~caster.occluded(rows(origin, ok), rows(dl, ok), tmax)], None
+        else:
+            T = self.transparency.transmittance(caster, rows(origin, ok), rows(dl, ok), tmax)
+            seen = (T.max(axis=1) if T.ndim == 2 else T) > 0
+            vis, passed = ok[seen], T[seen]
         if len(vis) == 0:
             return out, len(ok)
         ev = np.take(e, vis)
@@ -220,7 +227,11 @@ class EmitterSampler:
                               / np.maximum(np.take(solid_angle, np.take(vis, solid)), 1e-300))
         q = np.take(cos_y, vis) * np.float32(INV_PI)
         weight = q / (p_light + q) if mis else q / p_light
+        if passed is not None and passed.ndim == 1:
+            weight = weight * passed
         out[vis] = rows(self.radiance32, ev) * weight[:, None]
+        if passed is not None and passed.ndim == 2:    # tinted transparent surfaces on the way
+            out[vis] *= passed
         return out, len(ok)
 
     def _connect(self, origin, o, e, close, r1, r2):

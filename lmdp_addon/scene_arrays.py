@@ -53,6 +53,10 @@ class SceneArrays:
                         (an HDRI), or None: escaping rays see ``world_radiance``
     lamps               :class:`~lmdp_addon.lamps.Lamps`: point, spot, sun and area lights (default
                         none)
+    surface             :class:`~lmdp_addon.textures.SurfaceTextures` of the textured and
+                        transparent materials (colour and alpha at a point), or None: every
+                        material is uniform and opaque. ``triangle_albedo`` is then each
+                        triangle's mean albedo; :meth:`albedo_at` the value at a point
     warnings            messages for the user gathered during extraction, and one per object
                         with triangles that are left out (:meth:`usable_triangles`)
     """
@@ -72,6 +76,7 @@ class SceneArrays:
     corner_normals: np.ndarray = None
     environment: object = None
     lamps: Lamps = None
+    surface: object = None
     _held: dict = field(default=None, init=False, repr=False, compare=False)
     _hold_depth: int = field(default=0, init=False, repr=False, compare=False)
 
@@ -231,6 +236,13 @@ class SceneArrays:
         if side is not None:
             out = np.where(np.asarray(side, dtype=bool)[:, None], out, -out)
         return out
+
+    def albedo_at(self, tri, bu, bv):
+        """(k, 3) float32 diffuse albedo in [0, 1] at barycentrics ``(bu, bv)`` of triangles
+        ``tri`` (embree's convention): the textured value (:attr:`surface`) or the triangle's."""
+        if self.surface is None or not self.surface.has_albedo:
+            return np.clip(np.take(self.triangle_albedo, np.asarray(tri, dtype=np.int64), axis=0), 0.0, 1.0)
+        return self.surface.albedo(tri, bu, bv, self.triangle_albedo)
 
     def valid_triangles(self):
         """Boolean mask of usable triangles (:meth:`usable_triangles`) with non-zero area."""

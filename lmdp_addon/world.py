@@ -202,7 +202,7 @@ def bin_of_direction(directions):
 
 # ---- the bake: next-event estimation of the world and the escaping rays' MIS weight ------------------
 
-def next_event(environment, points, normals, rng, caster, lift, geometric=None, mis=True):
+def next_event(environment, points, normals, rng, caster, lift, geometric=None, mis=True, transparency=None):
     """``(values (k, 3) float32, shadow rays)``: the world-sampling half of the MIS estimate of
     the world's direct light D_w(y) = (1/π) ∫ L_env(ω) cos θ V(y, ω) dω at surface points
     ``points (k, 3)`` with (shading) ``normals`` of the lit side: one direction by
@@ -211,7 +211,8 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
     ``L q / (p + q)`` with ``q = cos θ / π`` (balance heuristic, Veach 1997; the escaping
     rays' half is :func:`escape_weight`) or ``L q / p`` with ``mis=False`` (the whole of D_w
     by world sampling, for paths that end at y). Directions below the geometric surface give 0,
-    as the tracer's BSDF sampling absorbs them."""
+    as the tracer's BSDF sampling absorbs them; ``transparency`` (or None) lets the shadow rays
+    through cut-outs with ∏ (1 − alpha)."""
     k = len(points)
     out = np.zeros((k, 3), np.float32)
     if k == 0 or not environment.lit:
@@ -226,11 +227,18 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
     if len(ok) == 0:
         return out, 0
     origin = points[ok] + np.asarray(lift, dtype=np.float32)[ok, None] * g[ok]
-    blocked = caster.occluded(origin, d[ok], np.full(len(ok), np.inf, np.float32))
-    vis = ok[~blocked]
+    if transparency is None:
+        blocked = caster.occluded(origin, d[ok], np.full(len(ok), np.inf, np.float32))
+        vis, passed = ok[~blocked], None
+    else:
+        T = transparency.transmittance(caster, origin, d[ok], np.full(len(ok), np.inf, np.float32))
+        seen = (T.max(axis=1) if T.ndim == 2 else T) > 0
+        vis, passed = ok[seen], T[seen]
     q = cos[vis] * np.float32(1.0 / np.pi)
     weight = q / (p[vis] + q) if mis else q / p[vis]
     out[vis] = L[vis] * weight[:, None].astype(np.float32)
+    if passed is not None:
+        out[vis] *= passed if passed.ndim == 2 else passed[:, None]
     return out, len(ok)
 
 

@@ -133,6 +133,8 @@ def scene_fingerprint(scene):
         h.update(b"\0lamps\0" + "\0".join(scene.lamps.names).encode())
         for array in scene.lamps.arrays():
             h.update(np.ascontiguousarray(array).tobytes())
+    if getattr(scene, "surface", None) is not None:
+        h.update(b"\0surface\0" + scene.surface.fingerprint())
     return h.hexdigest()
 
 

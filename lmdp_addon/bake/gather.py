@@ -191,7 +191,11 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         owner = np.repeat(ids, R)
         d = cosine_directions(shading[owner].astype(np.float32), u, stratified=True)
         origin = lifted[owner].astype(np.float32)
-        tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
+        tint = None
+        if lights.transparency is None:
+            tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
+        else:   # transparent surfaces pass rays with probability 1 - alpha (``transparency``)
+            tri, _, bu, bv, _, tint = lights.transparency.intersect(caster, origin, d, rng)
         hit = np.flatnonzero(tri >= 0)
         if smooth:   # shading-normal cosine rays below the geometric surface are absorbed (tracer)
             hit = hit[np.einsum("ij,ij->i", states.normals[owner[hit]], d[hit]) > 0]
@@ -207,18 +211,21 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
             direct = lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t), geometric=ng)[0]
             if not scene.lamps.empty:
                 direct = direct + scene.lamps.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
-                                                           geometric=ng)[0]
+                                                           geometric=ng, transparency=lights.transparency)[0]
         else:
             ns = ng
             direct = lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
             if not scene.lamps.empty:
-                direct = direct + scene.lamps.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
+                direct = direct + scene.lamps.direct_light(pos, ng, rng, caster, lift=caster.offset(t),
+                                                           transparency=lights.transparency)[0]
         if environment is not None:    # the world's direct light at the hit, by world sampling
             direct = direct + world_light.next_event(
                 environment, pos.astype(np.float32), ns.astype(np.float32), rng, caster,
                 caster.offset(t).astype(np.float32), geometric=ng.astype(np.float32) if smooth else None,
-                mis=False)[0]
-        value = albedo[t] * direct
+                mis=False, transparency=lights.transparency)[0]
+        value = scene.albedo_at(t, bu[hit], bv[hit]) * direct
+        if tint is not None:
+            value = value * tint[hit]
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R

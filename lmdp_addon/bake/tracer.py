@@ -59,6 +59,7 @@ from .. import world as world_light
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
+from ..transparency import Transparency
 from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
@@ -142,6 +143,14 @@ class IndirectTracer:
         #: ``bsdf_diffuse_sample``). Flat scenes keep the face normal for both, bit for bit.
         self.smooth = scene.has_smooth_normals()
         self.albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
+        #: Textured materials: the albedo at each hit (``SceneArrays.albedo_at``); alpha: rays
+        #: pass transparent surfaces with probability 1 - alpha (``transparency``).
+        self.textured = scene.surface is not None and scene.surface.has_albedo
+        self.transparency = Transparency.of(scene)
+        #: Some surface may have a colour channel 0: the estimate there follows Cycles' pass
+        #: division (``_even_colour``).
+        self.zero_colour = bool(self.textured or self.transparency is not None
+                                or np.any(self.albedo[~scene.is_emissive()] <= 0))
         self.objects = scene.triangle_object
         self.world = np.asarray(scene.world_radiance, dtype=np.float32)
         self.world_lit = bool(np.any(self.world > 0))
@@ -174,11 +183,15 @@ class IndirectTracer:
             return L, stats
         # ---- vertex 0: the texel point x and its first direction ω0 ----
         idx = np.arange(n)
-        pos = np.ascontiguousarray(points, dtype=np.float32)
+        pos = start = np.ascontiguousarray(points, dtype=np.float32)
         nrm = np.ascontiguousarray(normals, dtype=np.float32)
         gnrm = nrm
         if self.smooth and triangles is not None:
             nrm, gnrm = self._start_normals(pos, nrm, np.asarray(triangles, dtype=np.int64))
+        if self.zero_colour and triangles is not None:
+            # Cycles' DIFFUSE INDIRECT pass is divided by the diffuse colour at x (albedo x
+            # alpha); in channels where that colour is 0 it takes the others' (below).
+            colour0 = self._start_colour(pos, np.asarray(triangles, dtype=np.int64))
         states = np.asarray(states, dtype=np.int64) if self.guide is not None else np.full(n, -1)
         d, w, cos_prev = self.directions.sample(nrm, states, np.asarray(u_first, np.float64),
                                                 np.asarray(u_mix), first=True)
@@ -194,7 +207,13 @@ class IndirectTracer:
         while len(idx):
             # ---- closest hits y_bounce of the sampled directions ----
             origin = pos + lift[:, None] * gnrm
-            tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
+            if self.transparency is None:
+                tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
+            else:
+                tri, dist, bu, bv, passes, tint = self.transparency.intersect(self.caster, origin, d, rng)
+                stats.rays += passes
+                if tint is not None:     # the colour of the tinted surfaces passed
+                    beta = beta * tint
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2 or self.content.direct:
@@ -251,15 +270,28 @@ class IndirectTracer:
                 idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
                     np.flatnonzero(keep), idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
             bounce += 1
-        if self.content.multiply_color:
-            times_color(L, self._start_albedo(triangles))
+        if self.zero_colour and triangles is not None:
+            L = _even_colour(L, colour0)
+        if self.content.multiply_color:   # Cycles' COLOR filter: times the diffuse colour at x
+            if triangles is None:
+                raise ValueError("multiply_color needs the start points' triangles")
+            times_color(L, self._start_colour(start, np.asarray(triangles, dtype=np.int64)))
         return L, stats
 
-    def _start_albedo(self, triangles):
-        """The diffuse colour ρ (n, 3) of the start points' triangles (``BakeContent.multiply_color``)."""
-        if triangles is None:
-            raise ValueError("multiply_color needs the start points' triangles")
-        return rows(self.albedo, np.asarray(triangles, dtype=np.int64))
+    def _start_colour(self, pos, triangles):
+        """(k, 3) diffuse colour (albedo x alpha) of the start points ``pos`` on ``triangles``."""
+        t = triangles
+        e1, e2 = self.edge1[t].astype(np.float64), self.edge2[t].astype(np.float64)
+        r = pos.astype(np.float64) - self.corner0[t]
+        a, b, c = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+        p, q = (e1 * r).sum(1), (e2 * r).sum(1)
+        det = a * c - b * b
+        det = np.where(det != 0, det, 1.0)
+        bu, bv = ((c * p - b * q) / det).astype(np.float32), ((a * q - b * p) / det).astype(np.float32)
+        colour = self.scene.albedo_at(t, bu, bv)
+        if self.transparency is not None:
+            colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
+        return colour
 
     def _next_events(self, pos, nrm, gnrm, lift, rng, stats):
         """The light-sampling half of the direct light D(y) (k, 3) at the points ``pos`` (shading
@@ -271,12 +303,12 @@ class IndirectTracer:
         stats.shadow_rays += shadow_rays
         if not self.lamps.empty:
             lamp_direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
-                                                             geometric=geometric)
+                                                             geometric=geometric, transparency=self.transparency)
             stats.shadow_rays += shadow_rays
             direct = direct + lamp_direct
         if self.environment is not None:
             world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
-                                                               geometric=geometric)
+                                                               geometric=geometric, transparency=self.transparency)
             stats.shadow_rays += shadow_rays
             direct = direct + world_direct
         return direct
@@ -324,18 +356,19 @@ class IndirectTracer:
         front = dot(ng, d) < 0
         gnrm = np.where(front[:, None], ng, -ng)
         nrm = self.scene.shading_normals(tri, bu, bv, side=front) if self.smooth else gnrm
-        return pos, nrm, gnrm, front, beta * (w[:, None] * rows(self.albedo, tri))
+        albedo = self.scene.albedo_at(tri, bu, bv) if self.textured else rows(self.albedo, tri)
+        return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
 
     def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k >= 2): the world
         through the rays that escape, the emitters through the rays ``h`` that hit geometry
         (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays."""
         if self.environment is not None and len(h) < len(idx):
-            miss = np.flatnonzero(tri < 0)
+            miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
             L[idx[miss]] += rows(bw, miss) * world_light.escape_weight(self.environment, rows(d, miss),
                                                                        np.take(cos_prev, miss))
         elif self.world_lit and len(h) < len(idx):
-            miss = np.flatnonzero(tri < 0)
+            miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
             L[idx[miss]] += rows(bw, miss) * self.world
         if len(h):
             lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals)
@@ -356,19 +389,37 @@ class IndirectTracer:
         if self.environment is not None:   # the world's direct light at y_1 (ẑ then leaves it out)
             world_direct, shadow_rays = world_light.next_event(
                 self.environment, rows(pos, g), rows(nrm, g), rng, self.caster, np.take(lift, g),
-                geometric=rows(gnrm, g) if self.smooth else None, mis=False)
+                geometric=rows(gnrm, g) if self.smooth else None, mis=False, transparency=self.transparency)
             stats.shadow_rays += shadow_rays
             direct = direct + world_direct
         if not self.lamps.empty:
             lamp_direct, shadow_rays = self.lamps.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster,
                                                                lift=np.take(lift, g),
-                                                               geometric=rows(gnrm, g) if self.smooth else None)
+                                                               geometric=rows(gnrm, g) if self.smooth else None,
+                                                               transparency=self.transparency)
             stats.shadow_rays += shadow_rays
             direct = direct + lamp_direct
         L[idx[g]] += rows(beta, g) * (value[g].astype(np.float32) + direct)
         stats.gathered += int(done.sum())
         stats.gather_fallback += int((~done).sum())
         return np.flatnonzero(~done)
+
+
+def _even_colour(L, colour):
+    """``L (k, 3)`` where the diffuse colour ``colour (k, 3)`` at the start point has zero
+    channels, as Cycles' ``safe_divide_even_color`` leaves a pass divided by it: a zero
+    channel takes the value of the other channel (two zeros) or the mean of the two others
+    (one zero); all three zero give 0."""
+    zero = colour <= 0
+    some = np.flatnonzero(zero.any(axis=1))
+    if len(some) == 0:
+        return L
+    v, z = L[some].copy(), zero[some]
+    v[z] = 0.0
+    n = (~z).sum(axis=1, keepdims=True)
+    fill = np.where(n > 0, v.sum(axis=1, keepdims=True) / np.maximum(n, 1), 0.0)
+    L[some] = np.where(z, fill, v)
+    return L
 
 
 def _select_rows(index, *arrays):

@@ -42,6 +42,8 @@ from ..lights import EmitterSampler
 from .locator import StateLocator, buried_points
 from .patterns import DirectionPatterns, LightPatterns
 from ..raycast import RayCaster
+from ..scene_arrays import LUMINANCE
+from ..transparency import ABSORBED
 from ..world import world_bin_count
 
 #: Column roles after the point columns.
@@ -292,6 +294,7 @@ class _DynamicsBuild:
     def _set_up_rays(self, caster, seed, light_samples, buried_known):
         """The BVH, the lifted ray origins, the buried points and the ray patterns."""
         states = self.states
+        self.seed = int(seed)
         self.caster = caster = caster or RayCaster(self.scene)
         # Every ray leaves through the upper hemisphere of its point: offset along the normal.
         self.lifted64 = caster.lift(states.points, states.normals, states.point_triangle)
@@ -351,12 +354,19 @@ class _DynamicsBuild:
         inside = np.repeat(self.buried[ids], S * R)
         out = np.flatnonzero(~inside) if inside.any() else slice(None)
         ta = time.perf_counter()
-        hits = self.caster.intersect(origins[out], dirs[out], barycentrics=True)
+        transparency = self.sampler.transparency
+        if transparency is None:
+            hits = self.caster.intersect(origins[out], dirs[out], barycentrics=True)
+        else:   # rays pass transparent surfaces with probability 1 - alpha, deterministic per batch
+            rng = np.random.default_rng([self.seed, 0xA1FA, int(start)])
+            hits = transparency.intersect(self.caster, origins[out], dirs[out], rng)[:4]
         tb = time.perf_counter()
         # The next-event rows need no locator: they are done first, while it may still be built.
         nee = self.emitter_entries(ids) if self.K else None
         lamp = self.lamp_entries(ids) if len(self.lamps) else None
         col, tri, dist, c = self._classify(origins, dirs, hits, inside, out)
+        if transparency is not None:
+            col[tri == ABSORBED] = self.m + self.E + 1     # past too many transparent surfaces
         rows, cols, weights = self._stratum_entries(ids, dirs, col, tri, dist)
         for extra in (nee, lamp):
             if extra is not None:
@@ -429,14 +439,20 @@ class _DynamicsBuild:
         owner = live // K
         omega_live = omega.reshape(-1, 3)[live]
         target = np.take(self.sampler.triangles, tri_index.reshape(-1)[live])
-        blocked = caster.occluded(self.lifted[ids][owner], omega_live,
-                                  caster.shadow_distance(dist.reshape(-1)[live], target))
-        live, owner = live[~blocked], owner[~blocked]
+        tmax = caster.shadow_distance(dist.reshape(-1)[live], target)
+        if self.sampler.transparency is None:
+            passed = ~caster.occluded(self.lifted[ids][owner], omega_live, tmax)
+        else:   # transparent occluders let 1 - alpha through (Cycles' transparent shadows)
+            passed = self.sampler.transparency.transmittance(caster, self.lifted[ids][owner], omega_live, tmax)
+            if passed.ndim == 2:     # tinted: the LMDP's transitions carry the luminance
+                passed = passed.astype(np.float64) @ LUMINANCE
+        transmitted = passed[passed > 0].astype(np.float64)
+        live, owner = live[passed > 0], owner[passed > 0]
         k = np.maximum(stratum_of_local_direction(local.reshape(-1, 3)[live], states.strata_u,
                                                   states.strata_v), 0)
         cx = cos_x.reshape(-1)[live]
         p_light = self.sampler_pdf * dist2.reshape(-1)[live] / cos_y.reshape(-1)[live]  # pdf_A d² / cos θ_y
-        weight = (cx / np.pi) / (K * p_light + self.R * cx / (np.pi * states.stratum_weight[k]))
+        weight = transmitted * (cx / np.pi) / (K * p_light + self.R * cx / (np.pi * states.stratum_weight[k]))
         cols = self.m + self.sampler.emitter_of_triangle[tri_index.reshape(-1)[live]]
         return (owner * self.S + k).astype(np.int32), cols.astype(np.int32), weight.astype(np.float32)
 
@@ -447,7 +463,8 @@ class _DynamicsBuild:
         live = ids[~self.buried[ids]]
         rng = np.random.default_rng([self.seed, 0x1A4B5, int(ids[0]) if len(ids) else 0])
         owner, lamp, local, mass = self.lamps.transitions(self.lifted64[live], self.states.frames[live],
-                                                          max(self.light_samples, 1), rng, self.caster)
+                                                          max(self.light_samples, 1), rng, self.caster,
+                                                          transparency=self.sampler.transparency)
         k = np.maximum(stratum_of_local_direction(local, self.states.strata_u, self.states.strata_v), 0)
         rows = (live[owner] - ids[0]) * self.S + k
         cols = self.m + self.E + self.W + 1 + lamp

@@ -137,7 +137,7 @@ def _sample(scene, point_count, strata_u, strata_v, seed):
         frames=tangent_frame(point_normals),
         point_triangle=tri.astype(np.int64),
         point_object=obj.astype(np.int32),
-        point_albedo=scene.triangle_albedo[tri].astype(np.float32),
+        point_albedo=scene.albedo_at(tri, bary[:, 1], bary[:, 2]).astype(np.float32),
         point_area=point_area,
         strata_u=int(strata_u),
         strata_v=int(strata_v),

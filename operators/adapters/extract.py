@@ -2,9 +2,11 @@
 
 :func:`extract_scene` reads every visible mesh of the view layer from the evaluated depsgraph
 (modifiers and geometry nodes applied, instances included, world space), its triangles, the
-lightmap's UV map (``scene.lmdp.lightmap_uv_map``, :mod:`.lightmap_uvs`), and one diffuse albedo /
-emitted radiance per triangle from the material of its polygon, plus Blender's lights (point,
-spot, sun and area lights as lamps) and the world background.
+lightmap's UV map (``scene.lmdp.lightmap_uv_map``, :mod:`.lightmap_uvs`), and the diffuse albedo,
+alpha and emitted radiance of the material of its polygon (:mod:`.shading`: constant per
+triangle, or an expression of image textures, colour attributes and colour nodes evaluated at
+each point, ``SceneArrays.surface``), plus Blender's lights (point, spot, sun and area lights as
+lamps) and the world background.
 Conventions follow Cycles as measured in docs/cycles_conventions.md:
 
 * Emission shader: radiance = Color x Strength, two-sided. Principled BSDF: Base Color is the
@@ -27,8 +29,8 @@ each of its objects is (``session_uid``, which survives renames) and a fingerpri
 and transform of each object that carries states, so that results are never matched to
 objects by name (:func:`..session.captured_index`, :func:`..session.changed_since_capture`).
 
-Whatever is approximated (textures by their mean, Mix / Add shaders by weighted sums, non-diffuse
-BSDFs as diffuse, unsupported lights skipped) is reported in ``SceneArrays.warnings`` with the
+Whatever is approximated (nodes LMDP cannot evaluate, emission textures averaged per triangle,
+non-diffuse BSDFs as diffuse, unsupported lights skipped) is reported in ``SceneArrays.warnings`` with the
 object, material and node names.
 """
 import hashlib
@@ -37,9 +39,11 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from ...lmdp_addon import textures
 from ...lmdp_addon.lamps import AREA, POINT, SPOT, SUN, Lamps
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
+from . import shading
 from .lightmap_uvs import chosen_uv_name
 from .materials import NODE_MULTIPLY, slot_materials
 from .world_capture import WorldReader
@@ -94,7 +98,8 @@ def _srgb_to_linear(c):
 
 
 class _MaterialReader:
-    """Diffuse albedo and emitted radiance of node materials, with warnings (cached per material)."""
+    """The world's radiance (and constant albedo / emission of node materials), with warnings;
+    meshes read their materials with :class:`.shading.ShadingReader`."""
 
     def __init__(self, warnings):
         self.warnings = warnings
@@ -127,16 +132,13 @@ class _MaterialReader:
         """Mean linear RGB of ``image`` (rows weighted by solid angle for equirect maps)."""
         key = (image.name, equirect)
         if key not in self._image_means:
-            w, h = image.size
-            if not image.has_data and w * h == 0:
+            table = shading.IMAGE_CACHE.table(image)
+            if table is None:
                 self._image_means[key] = None
             else:
-                px = np.empty(w * h * image.channels, dtype=np.float32)
-                image.pixels.foreach_get(px)
-                px = px.reshape(h, w, image.channels)[..., :3].astype(np.float64)
-                if px.shape[-1] < 3:
-                    px = np.repeat(px[..., :1], 3, axis=-1)
-                if not image.is_float and image.colorspace_settings.name == 'sRGB':
+                h, w = table.pixels.shape[:2]
+                px = table.pixels[..., :3].astype(np.float64)
+                if table.srgb:
                     px = _srgb_to_linear(px)
                 if equirect:
                     lat = (np.arange(h) + 0.5) / h * np.pi - np.pi / 2
@@ -453,15 +455,26 @@ class _SceneBuilder:
         self.uids, self.fingerprints = [], []
         self.parts = []  # (vertices, triangles, albedo, emission, two_sided, uv) per object
         self.normals = []  # (T, 3, 3) corner normals per object (NaN: the face normal)
+        self.surfaces = []  # (material (T,), {uv index: (T, 3, 2)}, {attribute index: (T, 3, 4)})
+        self.materials, self._material_index = [], {}
         self.offset = 0
         self.lamps = []   # point, spot and sun lights (``_lamp_record``)
 
+    def material_index(self, key, shading):
+        """Scene-wide index of the textured / transparent material ``key``."""
+        if key not in self._material_index:
+            self._material_index[key] = len(self.materials)
+            self.materials.append(shading)
+        return self._material_index[key]
+
     def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv,
-            uid=-1, fingerprint=None, corner_normals=None):
+            uid=-1, fingerprint=None, corner_normals=None, surface=None):
         """One object: world vertices (V, 3), triangles (T, 3) into them, per-triangle albedo /
         emission (T, 3) and two-sidedness (T,), UVs (T, 3, 2) or None; the ``session_uid`` and
         :func:`object_fingerprint` of its Blender object (see :class:`CapturedScene`); its
-        corner normals (T, 3, 3) world space, or None (flat: the face normals)."""
+        corner normals (T, 3, 3) world space, or None (flat: the face normals); ``surface``:
+        ``(material (T,) int32, {uv map: (T, 3, 2)}, {attribute: (T, 3, 4)})`` of its textured
+        materials (:meth:`material_index`; -1: constant), or None."""
         self.names.append(name)
         self.uids.append(uid)
         self.fingerprints.append(fingerprint)
@@ -472,9 +485,29 @@ class _SceneBuilder:
                            uv if uv is not None else np.zeros((len(tris), 3, 2), np.float32)))
         self.normals.append(corner_normals if corner_normals is not None
                             else np.full((len(tris), 3, 3), np.nan, np.float32))
+        self.surfaces.append(surface if surface is not None
+                             else (np.full(len(tris), -1, np.int32), {}, {}))
         self.offset += len(world)
 
-    def scene_arrays(self, world_radiance, warnings, environment=None):
+    def surface(self, reader, transparent_max_bounces):
+        """The scene's :class:`~lmdp_addon.textures.SurfaceTextures`, or None (all constant)."""
+        if not self.materials:
+            return None
+        sizes = [len(s[0]) for s in self.surfaces]
+
+        def column(which, index, shape):
+            return np.concatenate([s[which].get(index, np.zeros((n,) + shape, np.float32))
+                                   for s, n in zip(self.surfaces, sizes)])
+
+        return textures.SurfaceTextures(
+            images=list(reader.images),
+            uv_maps=[column(1, i, (3, 2)) for i in range(len(reader.uv_names))],
+            attributes=[column(2, i, (3, 4)) for i in range(len(reader.attribute_names))],
+            materials=list(self.materials),
+            triangle_material=np.concatenate([s[0] for s in self.surfaces]),
+            transparent_max_bounces=transparent_max_bounces)
+
+    def scene_arrays(self, world_radiance, warnings, environment=None, surface=None):
         if self.parts:
             vertices, triangles, triangle_object, albedo, emission, two_sided, triangle_uv = \
                 (np.concatenate(column) for column in zip(*self.parts))
@@ -488,6 +521,14 @@ class _SceneBuilder:
         corner_normals = np.concatenate(self.normals) if self.normals else None
         if corner_normals is not None and not np.any(np.isfinite(corner_normals)):
             corner_normals = None
+        if surface is not None:
+            # Textured triangles: their mean albedo (the value at a point is ``surface``'s) and
+            # the mean of a textured emission (the engine's emitters are uniform per triangle).
+            albedo, emission = albedo.copy(), emission.copy()
+            for which, target in (("albedo", albedo), ("emission", emission)):
+                tris = np.flatnonzero(surface._flags[which][surface.triangle_material])
+                if len(tris):
+                    target[tris] = surface.triangle_means(which, tris, albedo)
         return CapturedScene(
             vertices=vertices,
             triangles=triangles,
@@ -506,6 +547,7 @@ class _SceneBuilder:
             object_uids=np.array(self.uids, dtype=np.int64),
             object_fingerprints=list(self.fingerprints),
             lamps=_lamps(self.lamps),
+            surface=surface,
         )
 
 
@@ -559,13 +601,15 @@ def _shadow_flag_warning(name, obj, warnings):
                         "it casts shadows in the bake")
 
 
-def _add_mesh(builder, name, inst, fingerprint, reader, warnings, uv_choice=("", None)):
+def _add_mesh(builder, name, inst, fingerprint, reader, warnings, uv_choice=("", None),
+              colour_bakes=None):
     """The evaluated mesh of ``inst`` in world space, with its materials and lightmap UV map
     (``uv_choice``: (``scene.lmdp.lightmap_uv_map``, {object name: UV map} that overrides it));
     returns False when it has no faces. ``fingerprint``: the object's :func:`object_fingerprint`
     when it carries states, else None. Objects in Edit Mode are read from their edit mesh
     (``to_mesh``): the evaluated mesh of an object in Edit Mode holds no faces of its own."""
     carries_states = fingerprint is not None
+    colour_bakes = colour_bakes or {}
     obj = inst.object
     original = obj.original
     editing = original.type == 'MESH' and original.data.is_editmode
@@ -589,18 +633,119 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings, uv_choice=("",
         material_index = np.empty(len(mesh.polygons), dtype=np.int32)
         mesh.polygons.foreach_get("material_index", material_index)
         slots = slot_materials(obj)          # through the add-on's PREVIEW hook-up
-        per_slot = [reader.material(m) for m in slots] or [reader.material(None)]
+        slots = slots or [None]
+        per_slot = [reader.material(m) for m in slots]
         slot_of_tri = np.clip(material_index[poly], 0, len(per_slot) - 1)
-        albedo_table = np.array([a for a, _ in per_slot])
-        emission_table = np.array([e for _, e in per_slot])
+        albedo_table = np.array([a if isinstance(a, np.ndarray) else np.zeros(3) for a, _, _ in per_slot])
+        emission_table = np.array([e if isinstance(e, np.ndarray) else np.zeros(3) for _, e, _ in per_slot])
+        surface = _mesh_surface(builder, reader, name, mesh, loops, tris_vertices(mesh, poly, loops),
+                                slots, per_slot, slot_of_tri, fallback=colour_bakes.get(original.session_uid))
         builder.add(name, carries_states, world, tris, albedo_table[slot_of_tri],
                     emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv,
                     -1 if inst.is_instance else original.session_uid, None if inst.is_instance else fingerprint,
-                    corner_normals=corner_normals)
+                    corner_normals=corner_normals, surface=surface)
         return True
     finally:
         if own_mesh:
             obj.to_mesh_clear()
+
+
+def tris_vertices(mesh, poly, loops):
+    """(T, 3) vertex index of each triangle corner ``loops`` (for point-domain attributes)."""
+    vertex_of_loop = np.empty(len(mesh.loops), dtype=np.int32)
+    mesh.loops.foreach_get("vertex_index", vertex_of_loop)
+    return vertex_of_loop[loops]
+
+
+def _colour_bakes(context, reader, warnings):
+    """``{session_uid: (table, material names)}``: Cycles' own DIFFUSE COLOR bake
+    (:data:`.shading.COLOUR_BAKES`) of every visible mesh object whose materials hold nodes LMDP
+    cannot evaluate, and the materials (``name_full``) whose albedo it stands for. Objects that
+    cannot be baked (no UV map, not in Object Mode, linked) keep the socket values, with the
+    reader's warnings."""
+    out = {}
+    view_layer = context.view_layer
+    for obj in list(view_layer.objects):
+        if obj.type != 'MESH' or _is_hidden(obj, view_layer):
+            continue
+        materials = [m for m in slot_materials(obj) if m is not None]
+        for m in materials:
+            reader.material(m)
+        need = {m.name_full for m in materials if reader.unsupported.get(m.name_full)}
+        editable = (obj.library is None and obj.data.library is None
+                    and all(m.library is None and m.override_library is None for m in materials))
+        if not need or not editable or obj.mode != 'OBJECT' or not obj.data.uv_layers or context.mode != 'OBJECT':
+            continue
+        uv = next((l.name for l in obj.data.uv_layers if l.active_render), obj.data.uv_layers[0].name)
+        key = (obj.session_uid, object_fingerprint(obj), uv,
+               tuple(shading.tree_digest(m.node_tree).hexdigest() if m.node_tree else "" for m in materials))
+        # Under the PREVIEW hook-up Cycles would bake the preview's colour: only a kept bake serves.
+        previewed = slot_materials(obj) != [slot.material for slot in obj.material_slots]
+        try:
+            table = shading.COLOUR_BAKES.table(context, obj, key, bake=not previewed)
+        except (RuntimeError, ReferenceError) as exc:
+            warnings.append(f"Object '{obj.name}': Cycles' diffuse colour bake failed ({exc}); its "
+                            "materials' unsupported nodes read as their socket values")
+            continue
+        if table is None:
+            warnings.append(f"Object '{obj.name}' shows LMDP's lightmap preview, so Cycles cannot bake the "
+                            "colour of its materials' unsupported nodes (they read as their socket values): "
+                            "remove the hook-up (LMDP > Remove Bake Hook-up) and run again")
+            continue
+        out[obj.session_uid] = (table, need)
+    return out
+
+
+def _mesh_surface(builder, reader, name, mesh, loops, verts, slots, per_slot, slot_of_tri, fallback=None):
+    """The ``surface`` argument of :meth:`_SceneBuilder.add` for a mesh whose material slots
+    ``slots`` read as ``per_slot`` (:meth:`.shading.ShadingReader.material`), or None.
+    ``fallback``: ``(table, material names)`` of the object's Cycles colour bake
+    (:func:`_colour_bakes`): those materials take their albedo from it."""
+    index = np.full(len(per_slot), -1, np.int32)
+    uv_wanted, attr_wanted = set(), set()
+    for s, (mat, (albedo, emission, alpha)) in enumerate(zip(slots, per_slot)):
+        key = mat.name_full if mat is not None else ""
+        if fallback is not None and key in fallback[1]:
+            nodes = ", ".join(sorted({f"'{n}'" for n, _ in reader.unsupported[key]}))
+            message = (f"Material '{mat.name}': {nodes} cannot be evaluated by LMDP; on '{name}' its diffuse "
+                       f"colour is Cycles' own DIFFUSE COLOR bake ({shading.COLOUR_BAKE_RESOLUTION}² texels on "
+                       "the render UV map, interpolated between them)")
+            if message not in reader.warnings:
+                reader.warnings.append(message)
+            baked = textures.ImageTexture(reader.add_table(fallback[0]), reader._uv_index(None), "LINEAR", "EXTEND")
+            albedo = baked if alpha is None else textures.quotient(baked, alpha)   # the bake holds alpha x albedo
+            key = (key, name)
+        else:
+            reader.flush(mat)
+        exprs = [x for x in (albedo, emission, alpha) if x is not None and not isinstance(x, np.ndarray)]
+        if not exprs:
+            continue
+        index[s] = builder.material_index(key, textures.MaterialShading(
+            albedo=None if isinstance(albedo, np.ndarray) else albedo, alpha=alpha,
+            emission=None if isinstance(emission, np.ndarray) else emission,
+            tint=reader.tints.get(mat.name_full) if mat is not None else None))
+        for x in exprs:
+            found = textures.references(x)
+            uv_wanted |= {(i, mat) for i in found["uv"]}
+            attr_wanted |= {(i, mat) for i in found["attribute"]}
+    if np.all(index < 0):
+        return None
+    uvs, attrs = {}, {}
+    for i, mat in sorted(uv_wanted, key=lambda x: x[0]):
+        if i not in uvs:
+            uvs[i] = shading.uv_corners(mesh, loops, reader.uv_names[i])
+        if uvs[i] is None:
+            reader.warnings.append(f"Object '{name}' has no UV map '{reader.uv_names[i] or 'render'}' that "
+                                   f"material '{mat.name if mat else ''}' reads: its textures read UV (0, 0)")
+    for i, mat in sorted(attr_wanted, key=lambda x: x[0]):
+        if i not in attrs:
+            attrs[i] = shading.attribute_corners(mesh, loops, verts, reader.attribute_names[i])
+        if attrs[i] is None:
+            reader.warnings.append(f"Object '{name}' has no colour attribute "
+                                   f"'{reader.attribute_names[i] or 'render'}' that material "
+                                   f"'{mat.name if mat else ''}' reads: it reads black")
+    return (index[slot_of_tri], {i: a for i, a in uvs.items() if a is not None},
+            {i: a for i, a in attrs.items() if a is not None})
 
 
 def extract_scene(context, selected_objects, depsgraph=None, uv_maps=None):
@@ -618,11 +763,15 @@ def extract_scene(context, selected_objects, depsgraph=None, uv_maps=None):
     selected = {o.session_uid: o for o in (getattr(o, "original", o) for o in selected_objects or ())}
     # Before the depsgraph is evaluated: fingerprints update objects in Edit Mode from their edit mesh.
     fingerprints = {uid: object_fingerprint(o) if o.type == 'MESH' else "" for uid, o in selected.items()}
+    warnings = skipped_mesh_messages(selected_objects)
+    reader = shading.ShadingReader(warnings)
+    # Cycles' colour bakes change the depsgraph: they run before it is evaluated (not at all
+    # when the caller hands one in).
+    colour_bakes = _colour_bakes(context, reader, warnings) if depsgraph is None else {}
     if depsgraph is None:
         depsgraph = context.evaluated_depsgraph_get()
     view_layer = depsgraph.view_layer
-    warnings = skipped_mesh_messages(selected_objects)
-    reader = _MaterialReader(warnings)
+    world_reader = _MaterialReader(warnings)
     builder = _SceneBuilder()
     instance_count = {}
     skipped_lights = []
@@ -643,7 +792,8 @@ def extract_scene(context, selected_objects, depsgraph=None, uv_maps=None):
             _add_light(builder, name, inst, warnings, skipped_lights)
         elif obj.type in GEOMETRY_TYPES:
             _shadow_flag_warning(name, obj, warnings)
-            if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings, uv_choice):
+            if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings, uv_choice,
+                         colour_bakes):
                 captured.add(top.session_uid)
             if not inst.is_instance and mode_holding_mesh(obj.original) == "Sculpt Mode with Dynamic Topology":
                 warnings.append(f"Object '{name}' is in Sculpt Mode with Dynamic Topology, whose strokes "
@@ -656,5 +806,7 @@ def extract_scene(context, selected_objects, depsgraph=None, uv_maps=None):
                         "modifiers): they carry no LMDP states")
     if skipped_lights:
         warnings.append("Light types LMDP does not model were skipped: " + ", ".join(skipped_lights))
-    world_radiance, environment = reader.world(depsgraph.scene.world)
-    return builder.scene_arrays(world_radiance, warnings, environment)
+    cycles = getattr(depsgraph.scene, "cycles", None)
+    surface = builder.surface(reader, getattr(cycles, "transparent_max_bounces", 8))
+    world_radiance, environment = world_reader.world(depsgraph.scene.world)
+    return builder.scene_arrays(world_radiance, warnings, environment, surface)
