@@ -97,8 +97,8 @@ def bad_uv_faces(scene, index, resolution):
 
 
 def scene_fingerprint(scene):
-    """Hash of the geometry, shading normals, materials, world and object names of a SceneArrays
-    (not the selection).
+    """Hash of the geometry, shading normals, materials (with their microfacet lobes), world and
+    object names of a SceneArrays (not the selection).
 
     Shading normals count where they shade: the corner normals of the
     ``SceneArrays.smooth_triangles`` (the others shade with their face normal, exactly as
@@ -115,6 +115,12 @@ def scene_fingerprint(scene):
         h.update(b"\0corner_normals\0")
         h.update(np.flatnonzero(smooth).astype(np.int64).tobytes())
         h.update(np.ascontiguousarray(scene.corner_normals[smooth], dtype=np.float32).tobytes())
+    if scene.has_glossy():  # microfacet lobes (Lambertian scenes hash as before)
+        m = scene.materials
+        h.update(b"\0materials\0")
+        for array in (scene.triangle_material, m.kind, m.weight, m.alpha, m.eta, m.f0, m.b, m.multiscatter,
+                      m.layer):
+            h.update(np.ascontiguousarray(array).tobytes())
     return h.hexdigest()
 
 

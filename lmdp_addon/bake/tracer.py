@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..bsdf import GlossyRows, VertexBSDF
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
@@ -64,6 +65,7 @@ class TraceStats:
     guided_vertices: int = 0  #: vertices that had a compatible state (GUIDED / FINAL_GATHER)
     gathered: int = 0         #: FINAL_GATHER paths ended by the solution at y_1
     gather_fallback: int = 0  #: FINAL_GATHER paths continued by path tracing (no state near y_1)
+    glossy_vertices: int = 0  #: vertices on surfaces with microfacet lobes (BSDF sampling)
 
     def add(self, other):
         for name in self.__dataclass_fields__:
@@ -124,6 +126,9 @@ class IndirectTracer:
         self.objects = scene.triangle_object
         self.world = np.asarray(scene.world_radiance, dtype=np.float32)
         self.world_lit = bool(np.any(self.world > 0))
+        #: Glossy surfaces (``SceneArrays.materials``): their vertices sample and evaluate the
+        #: BSDF (``bsdf.VertexBSDF``); None: every surface is Lambertian (traced as before).
+        self.glossy = scene.glossy_triangles() if scene.has_glossy() else None
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None):
@@ -161,6 +166,7 @@ class IndirectTracer:
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         bounce = 1
+        q_prev = None
         while len(idx):
             # ---- closest hits y_bounce of the sampled directions ----
             origin = pos + lift[:, None] * gnrm
@@ -168,34 +174,44 @@ class IndirectTracer:
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2:
-                self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h)
+                self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev)
             if bounce > self.max_bounces:
                 break
             # ---- the vertex y_bounce: β_k = β_{k-1} w_{k-1} ρ(y_k) ----
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
-            pos, nrm, gnrm, front, beta = self._vertices(d, tri, bu, bv, w, beta)
+            pos, nrm, gnrm, front, beta_hit = self._vertices(d, tri, bu, bv, w, beta)
+            glossy = None if self.glossy is None else np.flatnonzero(self.glossy[tri])
+            if glossy is not None and len(glossy):
+                # β_k = β_{k-1} w_{k-1}: the BSDF's weight f cos / p joins when ω_k is sampled
+                beta_hit[glossy] = rows(beta, glossy) * rows(w, glossy)[:, None]
+            beta = beta_hit
+            wi = -d
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
             objs = self.objects[tri]
             if bounce == 1 and self.gather is not None:
                 live = self._final_gather(L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs,
                                           rng, stats)
-                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
-                    live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
+                    live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
-                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
-                    np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
+                    np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
+            glossy_rows = self._glossy_rows(tri, nrm, gnrm, wi, stats)
             if self.guide is not None:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
+                if glossy_rows is not None:
+                    vstates[glossy_rows.mask] = -1   # glossy vertices sample their BSDF
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
             direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift,
-                                                         geometric=gnrm if self.smooth else None)
+                                                         geometric=gnrm if self.smooth else None,
+                                                         bsdf=glossy_rows)
             stats.shadow_rays += shadow_rays
             L[idx] += beta * direct
             # ---- Russian roulette ----
@@ -204,16 +220,24 @@ class IndirectTracer:
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
                 idx, pos, nrm, gnrm, lift, vstates = _select_rows(survive, idx, pos, nrm, gnrm, lift, vstates)
+                if glossy_rows is not None:
+                    glossy_rows = glossy_rows.select(survive)
                 if len(idx) == 0:
                     break
             # ---- the next direction ω_bounce ----
             u = rng.random((len(idx), 3))
             d, w, cos_prev = self.directions.sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
             w = self._above_geometry(w, gnrm, d)
+            q_prev = None
+            if glossy_rows is not None:
+                d, w, beta, q_prev = self._sample_glossy(glossy_rows, u, d, w, beta)
             keep = w > 0
             if not np.all(keep):
+                keep = np.flatnonzero(keep)
                 idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
-                    np.flatnonzero(keep), idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
+                    keep, idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
+                if q_prev is not None:
+                    q_prev = np.take(q_prev, keep)
             bounce += 1
         return L, stats
 
@@ -262,15 +286,17 @@ class IndirectTracer:
         nrm = self.scene.shading_normals(tri, bu, bv, side=front) if self.smooth else gnrm
         return pos, nrm, gnrm, front, beta * (w[:, None] * rows(self.albedo, tri))
 
-    def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h):
+    def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k >= 2): the world
         through the rays that escape, the emitters through the rays ``h`` that hit geometry
-        (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays."""
+        (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays; ``q_prev``: the
+        BSDF density of rays sampled at glossy vertices (NaN elsewhere), or None."""
         if self.world_lit and len(h) < len(idx):
             miss = np.flatnonzero(tri < 0)
             L[idx[miss]] += rows(bw, miss) * self.world
         if len(h):
-            lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals)
+            lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals,
+                                                   pdf_from=q_prev)
             L[idx[lit]] += rows(bw, lit) * value
 
     def _final_gather(self, L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats):
@@ -280,6 +306,8 @@ class IndirectTracer:
         ``nrm`` / ``gnrm``: the shading and geometric normals of the hit side."""
         value = self.gather.value_at(tri, bu, bv, pos, gnrm, front, objs)
         done = ~np.isnan(value[:, 0]) & ~self.gather.too_close(dist, objs)
+        if self.glossy is not None:   # ẑ is Lambertian radiance: glossy hits go on as paths
+            done &= ~self.glossy[tri]
         g = np.flatnonzero(done)
         direct, shadow_rays = self.lights.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster,
                                                        lift=np.take(lift, g),
@@ -289,6 +317,38 @@ class IndirectTracer:
         stats.gathered += int(done.sum())
         stats.gather_fallback += int((~done).sum())
         return np.flatnonzero(~done)
+
+
+    # ---- glossy vertices ----------------------------------------------------------------------------
+    def _glossy_rows(self, tri, nrm, gnrm, wi, stats):
+        """The :class:`~lmdp_addon.bsdf.GlossyRows` of the vertices on glossy triangles ``tri``
+        (their BSDF set up for the view directions ``wi``), or None when there are none."""
+        if self.glossy is None:
+            return None
+        g = np.flatnonzero(self.glossy[tri])
+        if len(g) == 0:
+            return None
+        stats.glossy_vertices += len(g)
+        t = np.take(tri, g)
+        vertex = VertexBSDF(self.scene.materials, np.take(self.scene.triangle_material, t), rows(self.albedo, t),
+                            rows(nrm, g), rows(wi, g), geometric=rows(gnrm, g))
+        return GlossyRows(len(tri), g, vertex)
+
+    def _sample_glossy(self, glossy_rows, u, d, w, beta):
+        """Directions of the glossy rows drawn from their BSDF (``u``: their uniforms): the
+        weight ``f cos / p`` joins β (w = 1, 0 when absorbed); returns ``(d, w, beta, q)`` with
+        q (k,) float32 the BSDF density of those rays (NaN on the other rows, for MIS)."""
+        g = np.flatnonzero(glossy_rows.mask)
+        wo, weight, pdf = glossy_rows.bsdf.sample(rows(u, g))
+        d = d.copy()
+        d[g] = wo
+        w = w.copy()
+        w[g] = np.where((pdf > 0) & (weight.max(axis=1) > 0), 1.0, 0.0)
+        beta = beta.copy()
+        beta[g] = rows(beta, g) * weight
+        q = np.full(len(d), np.nan, np.float32)
+        q[g] = pdf
+        return d, w, beta, q
 
 
 def _select_rows(index, *arrays):
