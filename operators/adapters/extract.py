@@ -32,8 +32,10 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from ...lmdp_addon.bsdf import MaterialTable
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
+from .bsdf_params import material_lobes
 from .materials import NODE_MULTIPLY, slot_materials
 
 #: Cycles' default surface (a polygon without material): Diffuse BSDF, colour 0.8.
@@ -196,10 +198,9 @@ class _MaterialReader:
             base = self.colour(node, "Base Color", owner)
             metallic = self.value(node, "Metallic", owner)
             transmission = self.value(node, "Transmission Weight", owner)
-            if metallic > 0 or transmission > 0:
-                self.warn(f"{owner}: Principled BSDF '{node.name}' has Metallic {metallic:g} / "
-                          f"Transmission {transmission:g}; LMDP keeps only its diffuse part "
-                          "(albedo = Base Color x (1 - Metallic) x (1 - Transmission))")
+            if transmission > 0:   # metallic and specular: bsdf_params' microfacet lobes
+                self.warn(f"{owner}: Principled BSDF '{node.name}' has Transmission {transmission:g}; "
+                          "LMDP keeps its diffuse, specular and metallic parts (no transmission)")
             albedo = base * (1.0 - metallic) * (1.0 - transmission)
             strength = self.value(node, "Emission Strength", owner)
             emission = self.colour(node, "Emission Color", owner) * strength if strength else _BLACK
@@ -220,6 +221,8 @@ class _MaterialReader:
             self.warn(f"{owner}: Add Shader '{node.name}' is approximated by the sum of its inputs"
                       + (" (albedo clipped to 1)" if np.any(albedo > 1) else ""))
             return np.minimum(albedo, 1.0), e1 + e2
+        if t == 'BSDF_GLOSSY':   # no diffuse part: its reflection is a microfacet lobe (bsdf_params)
+            return _BLACK, _BLACK
         if t in ('BSDF_TRANSPARENT', 'HOLDOUT', 'BSDF_REFRACTION'):
             self.warn(f"{owner}: '{node.name}' ({node.bl_label}) cannot be modelled; the surface "
                       "is treated as black (absorbing)")
@@ -372,14 +375,28 @@ class _SceneBuilder:
         self.uids, self.fingerprints = [], []
         self.parts = []  # (vertices, triangles, albedo, emission, two_sided, uv) per object
         self.normals = []  # (T, 3, 3) corner normals per object (NaN: the face normal)
+        self.materials = []  # (T,) index into self.lobes per object (-1: Lambertian)
+        self.lobes, self.lobe_names, self._lobe_index = [], [], {}
         self.offset = 0
 
+    def material_index(self, key, name, lobes):
+        """Index of the microfacet lobes ``lobes`` of material ``key`` in the scene's
+        ``MaterialTable`` (-1: none, a Lambertian material)."""
+        if not lobes:
+            return -1
+        if key not in self._lobe_index:
+            self._lobe_index[key] = len(self.lobes)
+            self.lobes.append(lobes)
+            self.lobe_names.append(name)
+        return self._lobe_index[key]
+
     def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv,
-            uid=-1, fingerprint=None, corner_normals=None):
+            uid=-1, fingerprint=None, corner_normals=None, material=None):
         """One object: world vertices (V, 3), triangles (T, 3) into them, per-triangle albedo /
         emission (T, 3) and two-sidedness (T,), UVs (T, 3, 2) or None; the ``session_uid`` and
         :func:`object_fingerprint` of its Blender object (see :class:`CapturedScene`); its
-        corner normals (T, 3, 3) world space, or None (flat: the face normals)."""
+        corner normals (T, 3, 3) world space, or None (flat: the face normals); ``material``
+        (T,) its triangles' :meth:`material_index` (None: Lambertian)."""
         self.names.append(name)
         self.uids.append(uid)
         self.fingerprints.append(fingerprint)
@@ -390,6 +407,8 @@ class _SceneBuilder:
                            uv if uv is not None else np.zeros((len(tris), 3, 2), np.float32)))
         self.normals.append(corner_normals if corner_normals is not None
                             else np.full((len(tris), 3, 3), np.nan, np.float32))
+        self.materials.append(np.full(len(tris), -1, np.int32) if material is None
+                              else np.asarray(material, np.int32))
         self.offset += len(world)
 
     def scene_arrays(self, world_radiance, warnings):
@@ -406,6 +425,7 @@ class _SceneBuilder:
         corner_normals = np.concatenate(self.normals) if self.normals else None
         if corner_normals is not None and not np.any(np.isfinite(corner_normals)):
             corner_normals = None
+        materials = MaterialTable.from_lobes(self.lobes, self.lobe_names) if self.lobes else None
         return CapturedScene(
             vertices=vertices,
             triangles=triangles,
@@ -418,6 +438,8 @@ class _SceneBuilder:
             triangle_emission_two_sided=two_sided,
             triangle_uv=triangle_uv,
             corner_normals=corner_normals,
+            triangle_material=np.concatenate(self.materials) if materials is not None else None,
+            materials=materials,
             object_has_uv=np.array(self.has_uv, dtype=bool),
             warnings=warnings,
             object_uids=np.array(self.uids, dtype=np.int64),
@@ -475,10 +497,13 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings):
         slot_of_tri = np.clip(material_index[poly], 0, len(per_slot) - 1)
         albedo_table = np.array([a for a, _ in per_slot])
         emission_table = np.array([e for _, e in per_slot])
+        glossy = np.array([builder.material_index(m.name_full if m is not None else None,
+                                                  m.name if m is not None else "", material_lobes(reader, m))
+                           for m in slots] or [-1], dtype=np.int32)
         builder.add(name, carries_states, world, tris, albedo_table[slot_of_tri],
                     emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv,
                     -1 if inst.is_instance else original.session_uid, None if inst.is_instance else fingerprint,
-                    corner_normals=corner_normals)
+                    corner_normals=corner_normals, material=glossy[slot_of_tri])
         return True
     finally:
         if own_mesh:
