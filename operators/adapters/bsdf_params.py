@@ -103,3 +103,27 @@ def material_lobes(reader, mat):
         reader.warn(f"{owner}: several Principled specular layers; the diffuse part is weighted under "
                     "the first one only")
     return lobes
+
+
+def cycles_glossy_warnings(scene, arrays):
+    """Warnings for the Cycles settings that make Cycles' own bake of a scene with glossy
+    surfaces (``arrays.has_glossy()``) differ from LMDP's: Filter Glossy (``blur_glossy``)
+    roughens glossy lobes after a diffuse bounce, Reflective Caustics off drops them, and a
+    Glossy Bounces limit below the path length (LMDP does not count glossy bounces apart)."""
+    cycles = getattr(scene, "cycles", None)
+    if cycles is None or not arrays.has_glossy():
+        return []
+    out = []
+    if cycles.blur_glossy > 0:
+        out.append(f"Cycles' Filter Glossy ({cycles.blur_glossy:g}) blurs glossy reflections seen after a "
+                   "diffuse bounce in Cycles' own bakes; LMDP bakes them unblurred (set Light Paths > "
+                   "Caustics > Filter Glossy to 0 for the same result in Cycles)")
+    if not cycles.caustics_reflective:
+        out.append("Cycles' Reflective Caustics is off: Cycles' bakes drop glossy reflections after the "
+                   "texel's diffuse bounce; LMDP keeps them")
+    n = min(cycles.max_bounces, cycles.diffuse_bounces)
+    if cycles.glossy_bounces < n:
+        out.append(f"Cycles' Glossy bounces ({cycles.glossy_bounces}) is below the bake's path length "
+                   f"({n}); LMDP does not count glossy bounces apart: its paths keep up to {n} vertices "
+                   "of any kind")
+    return out
