@@ -36,6 +36,8 @@ CASES = {
     "narrow_opening": dict(title="Narrow opening, floor of the room lit only through the hatch",
                            kind="NARROW_OPENING", receiver="RoomAFloor"),
     "heavy": dict(title="Heavy Cornell box (bumpy, subdivided), floor", kind="HEAVY", receiver="Floor"),
+    "glossy": dict(title="Glossy box: checkered glossy floor, metallic sphere (Principled)", kind="GLOSSY_BOX",
+                   receiver="Floor"),
 }
 
 #: Seeds of the two reference halves, and the first seed of the compared runs.
@@ -98,6 +100,10 @@ def geometry_hash(scene):
               scene.world_radiance):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update("\0".join(scene.object_names).encode())
+    if scene.has_glossy():   # the microfacet lobes (Lambertian scenes hash as before)
+        m = scene.materials
+        for a in (scene.triangle_material, m.kind, m.weight, m.alpha, m.eta, m.f0, m.b, m.multiscatter):
+            h.update(np.ascontiguousarray(a).tobytes())
     h.update((ROOT / "operators" / "adapters" / "demo_scenes.py").read_bytes())
     return h.hexdigest()
 

@@ -333,6 +333,31 @@ class MaterialTable:
         return cls.from_lobes([[] for _ in range(count)])
 
 
+def principled_lobes(base, metallic=0.0, roughness=0.5, ior=1.5, ior_level=0.5, tint=(1.0, 1.0, 1.0),
+                     transmission=0.0, multiscatter=True, scale=1.0):
+    """The microfacet lobes (``MaterialTable.from_lobes`` dicts) of a Principled BSDF (v2) with
+    these inputs, weights x ``scale`` (a Mix Shader factor), as Cycles sets up its closures:
+    Metallic > 0 a CONDUCTOR lobe (weight Metallic, F0 = Base Color, F82 tint = Specular Tint),
+    the specular layer a DIELECTRIC lobe (weight (1 - Metallic)(1 - Transmission), η and F0 from
+    IOR and Specular IOR Level, F0 x Specular Tint) unless η = 1. Its diffuse part is
+    ``base x (1 - Metallic) x (1 - Transmission)``, the triangle's albedo."""
+    base = np.clip(np.broadcast_to(np.asarray(base, float), 3), 0.0, 1.0)
+    tint = np.maximum(np.broadcast_to(np.asarray(tint, float), 3), 0.0)
+    metallic = float(np.clip(metallic, 0.0, 1.0))
+    roughness = float(np.clip(roughness, 0.0, 1.0))
+    transmission = float(np.clip(transmission, 0.0, 1.0))
+    lobes = []
+    if metallic > WEIGHT_CUTOFF:
+        lobes.append(dict(kind=CONDUCTOR, weight=scale * metallic, roughness=roughness, f0=base,
+                          f82_tint=np.minimum(tint, 1.0), multiscatter=multiscatter))
+    eta, f0 = principled_eta_f0(ior, ior_level)
+    weight = scale * (1.0 - metallic) * (1.0 - transmission)
+    if eta != 1.0 and np.all(np.asarray(weight) > WEIGHT_CUTOFF):
+        lobes.append(dict(kind=DIELECTRIC, weight=weight, roughness=roughness, eta=eta, f0=f0 * tint,
+                          multiscatter=multiscatter, layer=True))
+    return lobes
+
+
 # ---- the BSDF at path vertices ------------------------------------------------------------------------
 
 def _frames(n):

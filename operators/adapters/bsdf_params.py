@@ -25,28 +25,16 @@ _OTHER_DISTRIBUTIONS = {'BECKMANN': "Beckmann", 'ASHIKHMIN_SHIRLEY': "Ashikhmin-
 
 
 def _principled(reader, node, owner, scale):
-    lobes = []
     value = lambda name: reader.value(node, name, owner)  # noqa: E731
-    base = np.clip(reader.colour(node, "Base Color", owner), 0.0, 1.0)
-    metallic = float(np.clip(value("Metallic"), 0.0, 1.0))
-    roughness = float(np.clip(value("Roughness"), 0.0, 1.0))
-    transmission = float(np.clip(value("Transmission Weight"), 0.0, 1.0))
-    tint = np.maximum(reader.colour(node, "Specular Tint", owner), 0.0) if "Specular Tint" in node.inputs \
-        else np.ones(3)
-    multiscatter = getattr(node, "distribution", 'MULTI_GGX') == 'MULTI_GGX'
+    tint = reader.colour(node, "Specular Tint", owner) if "Specular Tint" in node.inputs else np.ones(3)
     for name in ("Coat Weight", "Sheen Weight", "Anisotropic", "Thin Film Thickness"):
         if name in node.inputs and value(name) > 0:
             reader.warn(f"{owner}: Principled BSDF '{node.name}' {name} {value(name):g} is not modelled "
                         "(LMDP keeps its diffuse, specular and metallic parts)")
-    if metallic > bsdf.WEIGHT_CUTOFF:
-        lobes.append(dict(kind=bsdf.CONDUCTOR, weight=scale * metallic, roughness=roughness, f0=base,
-                          f82_tint=np.minimum(tint, 1.0), multiscatter=multiscatter))
-    eta, f0 = bsdf.principled_eta_f0(value("IOR"), value("Specular IOR Level"))
-    weight = scale * (1.0 - metallic) * (1.0 - transmission)
-    if eta != 1.0 and weight > bsdf.WEIGHT_CUTOFF:
-        lobes.append(dict(kind=bsdf.DIELECTRIC, weight=weight, roughness=roughness, eta=eta, f0=f0 * tint,
-                          multiscatter=multiscatter, layer=True))
-    return lobes
+    return bsdf.principled_lobes(reader.colour(node, "Base Color", owner), value("Metallic"), value("Roughness"),
+                                 value("IOR"), value("Specular IOR Level"), tint, value("Transmission Weight"),
+                                 multiscatter=getattr(node, "distribution", 'MULTI_GGX') == 'MULTI_GGX',
+                                 scale=scale)
 
 
 def _glossy(reader, node, owner, scale):
