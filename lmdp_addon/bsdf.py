@@ -194,15 +194,16 @@ def ggx_tables(n=24):
     ``E_avg (32,)`` = ∫ 2μ E dμ, ``s_ior (16 z, 16 μ, 16 rough)`` the mean interpolation factor
     of the real-Fresnel Schlick model for η = ior_from_f0(z⁴), ``s_schlick (2, 16, 16)`` that of
     the exponent model at the two z slices Cycles interpolates at z = 0.5 (exponents 5(1-z)/z for
-    z = 7/15 and 8/15). Computed once per process (about a second)."""
+    z = 7/15 and 8/15). Computed once per process (under a second). Against Cycles' own tables:
+    E within 4e-3, E_avg within 1.5e-2 (it only enters the multiple-bounce Fresnel Fms)."""
     r32, m32 = _grid(32), _grid(32)
     rr, mm = np.meshgrid(r32, m32)                         # (mu, rough)
     _, _, w = _ggx_reflect(rr, mm, n)
     E = w.mean(axis=1).reshape(32, 32)
-    mu_mid = (np.arange(64) + 0.5) / 64
+    mu_mid = (np.arange(48) + 0.5) / 48
     rr, mm = np.meshgrid(r32, mu_mid)
-    _, _, w = _ggx_reflect(rr, mm, max(n // 2, 8))
-    e_mid = w.mean(axis=1).reshape(64, 32)
+    _, _, w = _ggx_reflect(rr, mm, max(2 * n // 3, 8))   # E_avg only scales Fms: coarser
+    e_mid = w.mean(axis=1).reshape(48, 32)
     E_avg = np.clip((2.0 * mu_mid[:, None] * e_mid).mean(axis=0), 0.0, 1.0)
     r16, m16 = _grid(16), _grid(16)
     rr, mm = np.meshgrid(r16, m16)
@@ -326,6 +327,27 @@ class MaterialTable:
                     tint = np.minimum(np.broadcast_to(np.asarray(lobe.get("f82_tint", 1.0), float), 3), 1.0)
                     b[i, j] = 0.0 if np.all(tint == 1.0) else f82_tint_b(f0[i, j], tint)
         return cls(kind, weight, alpha, eta, f0, b, ms, layer, names or [])
+
+    def hemispherical_albedo(self, n_mu=8, n=24):
+        """``(diffuse_scale (M, 3), specular (M, 3))``: the cosine-weighted mean over view angles
+        (∫ 2μ a(μ) dμ, Gauss-Legendre in μ) of each material's directional albedo a(μ), split into
+        the factor of the diffuse albedo (its layering weight) and the microfacet lobes' own
+        albedo, so a triangle of diffuse albedo ρ reflects ρ x diffuse_scale + specular of
+        uniform incident light."""
+        m = len(self.layer)
+        x, w = np.polynomial.legendre.leggauss(n_mu)
+        mu, w = 0.5 * (x + 1.0), 0.5 * w
+        k = m * n_mu
+        material = np.repeat(np.arange(m), n_mu)
+        mus = np.tile(mu, m)
+        wi = np.stack([np.sqrt(1.0 - mus * mus), np.zeros(k), mus], 1)
+        normals = np.tile([0.0, 0.0, 1.0], (k, 1))
+        white = VertexBSDF(self, material, np.ones((k, 3)), normals, wi).albedo(n)
+        black = VertexBSDF(self, material, np.zeros((k, 3)), normals, wi).albedo(n)
+        weight = np.tile(2.0 * mu * w, m)[:, None]
+        diffuse = ((white - black) * weight).reshape(m, n_mu, 3).sum(axis=1)
+        specular = (black * weight).reshape(m, n_mu, 3).sum(axis=1)
+        return diffuse, specular
 
     @classmethod
     def lambertian(cls, count=1):
@@ -598,3 +620,19 @@ class GlossyRows:
         mask = self.mask[keep]
         sub = self.bsdf.subset(self.position[keep[mask]])
         return GlossyRows(len(keep), np.flatnonzero(mask), sub) if len(sub.n) else None
+
+
+def lambertian_albedo(scene):
+    """(T, 3) float32 the albedo the LMDP gives each triangle: ``triangle_albedo`` on Lambertian
+    triangles; on glossy ones the hemispherical albedo of the whole BSDF
+    (:meth:`MaterialTable.hemispherical_albedo`), i.e. a Lambertian surface that reflects as much
+    of uniform incident light (the states keep one unknown per point; the bake samples the
+    real BSDF)."""
+    albedo = np.clip(np.asarray(scene.triangle_albedo, dtype=np.float64), 0.0, 1.0)
+    if not scene.has_glossy():
+        return np.asarray(scene.triangle_albedo, dtype=np.float32)
+    scale, specular = scene.materials.hemispherical_albedo()
+    g = np.flatnonzero(scene.glossy_triangles())
+    m = scene.triangle_material[g]
+    albedo[g] = np.clip(albedo[g] * scale[m] + specular[m], 0.0, 1.0)
+    return albedo.astype(np.float32)

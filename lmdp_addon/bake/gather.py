@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..bsdf import lambertian_albedo
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import cosine_directions
@@ -171,7 +172,7 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
     rng = np.random.default_rng([int(seed), 0xD1EC7])
     cell = np.arange(R)
     face_normals = scene.triangle_geometry()[0].astype(np.float32)
-    albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
+    albedo = np.clip(lambertian_albedo(scene), 0.0, 1.0)   # glossy: their hemispherical albedo
     reflects = (albedo.max(axis=1) > 0) & ~scene.is_emissive()
     corners = scene.corners()
     lifted = caster.lift(states.points, states.normals, states.point_triangle)

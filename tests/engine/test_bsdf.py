@@ -118,3 +118,35 @@ def test_mirror_lobe_reflects_its_fresnel():
     expect = bsdf.fresnel_f82(0.8, np.array([0.9, 0.5, 0.2]), 0.0)
     np.testing.assert_allclose(weight[0], expect, rtol=1e-9)
     assert pdf[0] >= bsdf.SINGULAR_PDF * 0.99
+
+
+#: Cycles' table_ggx_Eavg (scene/shader.tables), every fourth roughness x/31.
+CYCLES_E_AVG = [1.000000, 0.998729, 0.985805, 0.946279, 0.870874, 0.761345, 0.631068, 0.499191]
+
+
+def test_recomputed_average_albedo_matches_cycles():
+    np.testing.assert_allclose(bsdf.ggx_tables()["E_avg"][::4], CYCLES_E_AVG, atol=1.5e-2)
+
+
+def test_hemispherical_albedo_is_the_lmdp_albedo_of_glossy_surfaces():
+    """A white Multiscatter Glossy reflects all uniform light (1), a single-scatter one E_avg; a
+    white Principled dielectric keeps most of its diffuse albedo and adds its specular albedo,
+    about 1 in all; Lambertian scenes keep triangle_albedo exactly, the metal sphere of
+    GLOSSY_BOX (diffuse albedo 0) gets its metal's."""
+    table = bsdf.MaterialTable.from_lobes([
+        [dict(kind=bsdf.GLOSSY, weight=1.0, roughness=0.5)],
+        [dict(kind=bsdf.GLOSSY, weight=1.0, roughness=0.5, multiscatter=False)],
+        bsdf.principled_lobes((0.8, 0.8, 0.8), roughness=0.5),
+    ])
+    scale, specular = table.hemispherical_albedo()
+    assert abs(specular[0, 0] - 1.0) < 0.01
+    assert abs(specular[1, 0] - bsdf.lookup(bsdf.ggx_tables()["E_avg"], 0.5)) < 0.01
+    assert 0.85 < scale[2, 0] < 0.96 and 0.04 < specular[2, 0] < 0.15
+    assert abs(scale[2, 0] + specular[2, 0] - 1.0) < 0.02       # white: energy conserving
+    from lmdp_addon import demo_geometry as scenes
+    plain = scenes.build_scene_arrays("CORNELL_BOX")
+    assert np.array_equal(bsdf.lambertian_albedo(plain), plain.triangle_albedo)
+    glossy = scenes.build_scene_arrays("GLOSSY_BOX")
+    a = bsdf.lambertian_albedo(glossy)
+    metal = glossy.triangle_object == glossy.object_names.index("MetalSphere")
+    assert np.all(a[metal].max(axis=1) > 0.5) and np.all(glossy.triangle_albedo[metal] == 0)
