@@ -69,11 +69,11 @@ class LightPaths:
 
     ``SCENE``: the scene's Cycles Light Paths, as Cycles' own bake follows them. Cycles stops a
     path after the vertex whose bounce count reaches ``max_bounces`` or whose diffuse bounce count
-    reaches ``diffuse_bounces`` (``path_state_next``, both limits + 1 in the kernel); the engine
-    only makes diffuse bounces, so its path length is N = min(max_bounces, diffuse_bounces)
-    (measured against Cycles' bakes: docs/design.md). Glossy and transmission bounces never
-    occur in the engine, and Transparent surfaces absorb there, so ``glossy_bounces`` and
-    ``transparent_max_bounces`` are recorded only. ``clamp_indirect`` (Cycles'
+    reaches ``diffuse_bounces`` (``path_state_next``, both limits + 1 in the kernel); the engine's
+    path length is N = min(max_bounces, diffuse_bounces) vertices of any kind (measured against
+    Cycles' bakes: docs/design.md): glossy vertices (``bsdf``) are not counted apart, and
+    Transparent surfaces absorb, so ``glossy_bounces`` and ``transparent_max_bounces`` are
+    recorded only (the capture warns when Cycles' would differ on glossy scenes). ``clamp_indirect`` (Cycles'
     ``sample_clamp_indirect``) is never applied: the engine's value is the unclamped one.
     ``CUSTOM``: N = ``Settings.max_bounces``.
     """

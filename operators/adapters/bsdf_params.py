@@ -96,8 +96,9 @@ def material_lobes(reader, mat):
 def cycles_glossy_warnings(scene, arrays):
     """Warnings for the Cycles settings that make Cycles' own bake of a scene with glossy
     surfaces (``arrays.has_glossy()``) differ from LMDP's: Filter Glossy (``blur_glossy``)
-    roughens glossy lobes after a diffuse bounce, Reflective Caustics off drops them, and a
-    Glossy Bounces limit below the path length (LMDP does not count glossy bounces apart)."""
+    roughens glossy lobes after a diffuse bounce, Reflective Caustics off drops them, and Glossy
+    or Max bounces other than the path length N = min(Max, Diffuse) (LMDP does not count glossy
+    bounces apart: its paths keep N vertices of any kind)."""
     cycles = getattr(scene, "cycles", None)
     if cycles is None or not arrays.has_glossy():
         return []
@@ -110,8 +111,10 @@ def cycles_glossy_warnings(scene, arrays):
         out.append("Cycles' Reflective Caustics is off: Cycles' bakes drop glossy reflections after the "
                    "texel's diffuse bounce; LMDP keeps them")
     n = min(cycles.max_bounces, cycles.diffuse_bounces)
-    if cycles.glossy_bounces < n:
-        out.append(f"Cycles' Glossy bounces ({cycles.glossy_bounces}) is below the bake's path length "
-                   f"({n}); LMDP does not count glossy bounces apart: its paths keep up to {n} vertices "
-                   "of any kind")
+    if cycles.glossy_bounces != n or cycles.max_bounces != n:
+        out.append(f"Cycles counts glossy bounces apart (Max {cycles.max_bounces}, Diffuse "
+                   f"{cycles.diffuse_bounces}, Glossy {cycles.glossy_bounces}); LMDP's paths keep "
+                   f"{n} = min(Max, Diffuse) vertices of any kind, so paths through glossy surfaces end "
+                   "at another length than in Cycles: set Max, Diffuse and Glossy bounces equal for the "
+                   "same result")
     return out
