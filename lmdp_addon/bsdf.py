@@ -264,6 +264,8 @@ class MaterialTable:
     layer         (M,) int: the DIELECTRIC lobe whose estimated albedo attenuates the diffuse lobe
                   (Principled's specular layer over its diffuse base), -1: none
     names         M material names (for messages)
+    filter_glossy Cycles' Filter Glossy (``blur_glossy``) of the scene the materials come from,
+                  0: off (:class:`VertexBSDF` ``blur``)
     """
 
     kind: np.ndarray
@@ -275,6 +277,7 @@ class MaterialTable:
     multiscatter: np.ndarray
     layer: np.ndarray
     names: list = field(default_factory=list)
+    filter_glossy: float = 0.0
 
     def __post_init__(self):
         m = len(self.layer)
@@ -400,9 +403,12 @@ class VertexBSDF:
     albedo    (k, 3) the diffuse lobe's weight before layering (``triangle_albedo``)
     normals   (k, 3) shading normals N; ``geometric`` (k, 3) Ng of the same side (None: N)
     wi        (k, 3) unit directions towards the previous vertex
+    blur      (k,) or None: Cycles' Filter Glossy roughening, α ≥ blur on every lobe after the
+              setup (weights, energy compensation and layering keep the material's α, as in
+              Cycles' ``bsdf_microfacet_blur``)
     """
 
-    def __init__(self, table, material, albedo, normals, wi, geometric=None):
+    def __init__(self, table, material, albedo, normals, wi, geometric=None, blur=None):
         self.n = np.asarray(normals, dtype=np.float64)
         self.ng = self.n if geometric is None else np.asarray(geometric, dtype=np.float64)
         self.wi = np.asarray(wi, dtype=np.float64)
@@ -448,6 +454,8 @@ class VertexBSDF:
         sample_weight = sample_weight * np.where(ms, darkening.mean(axis=2), 1.0)
         self.weight = np.where(active[..., None], weight, 0.0)                        # (k, L, 3)
         self.sample_weight = np.where(active, sample_weight, 0.0)                     # (k, L)
+        if blur is not None:
+            self.alpha = np.maximum(self.alpha, np.asarray(blur, dtype=np.float64)[:, None])
         self.singular = self.alpha * self.alpha <= SINGULAR_ALPHA2
         # the diffuse lobe under the specular layer (Cycles' closure_layering_weight)
         diffuse = np.clip(np.asarray(albedo, dtype=np.float64), 0.0, None).copy()

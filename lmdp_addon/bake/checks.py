@@ -119,7 +119,7 @@ def scene_fingerprint(scene):
         m = scene.materials
         h.update(b"\0materials\0")
         for array in (scene.triangle_material, m.kind, m.weight, m.alpha, m.eta, m.f0, m.b, m.multiscatter,
-                      m.layer):
+                      m.layer, np.float64(m.filter_glossy)):
             h.update(np.ascontiguousarray(array).tobytes())
     return h.hexdigest()
 

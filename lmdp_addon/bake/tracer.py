@@ -52,6 +52,7 @@ from ..sampling import dot, rows
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER")
+INV_PI = 1.0 / np.pi
 
 
 @dataclass
@@ -129,6 +130,10 @@ class IndirectTracer:
         #: Glossy surfaces (``SceneArrays.materials``): their vertices sample and evaluate the
         #: BSDF (``bsdf.VertexBSDF``); None: every surface is Lambertian (traced as before).
         self.glossy = scene.glossy_triangles() if scene.has_glossy() else None
+        #: Cycles' Filter Glossy of the captured scene (``MaterialTable.filter_glossy``; 0: off):
+        #: glossy lobes at a vertex get α ≥ 0.5 √(1 - p_min / filter), p_min the smallest density
+        #: of the path's sampled rays so far (Cycles' ``surface_shader_prepare_closures``).
+        self.filter_glossy = float(scene.materials.filter_glossy) if self.glossy is not None else 0.0
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None):
@@ -165,6 +170,8 @@ class IndirectTracer:
                 else np.take(self.offsets, triangles))
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
+        # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
+        p_min = (np.maximum(cos_prev, 0.0) * INV_PI).astype(np.float32) if self.filter_glossy > 0 else None
         bounce = 1
         q_prev = None
         while len(idx):
@@ -180,6 +187,7 @@ class IndirectTracer:
             # ---- the vertex y_bounce: β_k = β_{k-1} w_{k-1} ρ(y_k) ----
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
+            p_min = _take(p_min, h)
             pos, nrm, gnrm, front, beta_hit = self._vertices(d, tri, bu, bv, w, beta)
             glossy = None if self.glossy is None else np.flatnonzero(self.glossy[tri])
             if glossy is not None and len(glossy):
@@ -195,14 +203,16 @@ class IndirectTracer:
                                           rng, stats)
                 idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
                     live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
+                p_min = _take(p_min, live)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
                 idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
                     np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
+                p_min = _take(p_min, np.flatnonzero(alive))
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
-            glossy_rows = self._glossy_rows(tri, nrm, gnrm, wi, stats)
+            glossy_rows = self._glossy_rows(tri, nrm, gnrm, wi, stats, p_min)
             if self.guide is not None:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 if glossy_rows is not None:
@@ -220,6 +230,7 @@ class IndirectTracer:
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
                 idx, pos, nrm, gnrm, lift, vstates = _select_rows(survive, idx, pos, nrm, gnrm, lift, vstates)
+                p_min = _take(p_min, survive)
                 if glossy_rows is not None:
                     glossy_rows = glossy_rows.select(survive)
                 if len(idx) == 0:
@@ -231,6 +242,11 @@ class IndirectTracer:
             q_prev = None
             if glossy_rows is not None:
                 d, w, beta, q_prev = self._sample_glossy(glossy_rows, u, d, w, beta)
+            if p_min is not None:
+                p_ray = np.maximum(cos_prev, 0.0) * INV_PI
+                if q_prev is not None:
+                    p_ray = np.where(np.isnan(q_prev), p_ray, q_prev)
+                p_min = np.minimum(p_min, p_ray).astype(np.float32)
             keep = w > 0
             if not np.all(keep):
                 keep = np.flatnonzero(keep)
@@ -238,6 +254,7 @@ class IndirectTracer:
                     keep, idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
                 if q_prev is not None:
                     q_prev = np.take(q_prev, keep)
+                p_min = _take(p_min, keep)
             bounce += 1
         return L, stats
 
@@ -320,9 +337,10 @@ class IndirectTracer:
 
 
     # ---- glossy vertices ----------------------------------------------------------------------------
-    def _glossy_rows(self, tri, nrm, gnrm, wi, stats):
+    def _glossy_rows(self, tri, nrm, gnrm, wi, stats, p_min=None):
         """The :class:`~lmdp_addon.bsdf.GlossyRows` of the vertices on glossy triangles ``tri``
-        (their BSDF set up for the view directions ``wi``), or None when there are none."""
+        (their BSDF set up for the view directions ``wi``, blurred by Filter Glossy from the
+        paths' smallest ray densities ``p_min``), or None when there are none."""
         if self.glossy is None:
             return None
         g = np.flatnonzero(self.glossy[tri])
@@ -330,8 +348,12 @@ class IndirectTracer:
             return None
         stats.glossy_vertices += len(g)
         t = np.take(tri, g)
+        blur = None
+        if p_min is not None:
+            blur_pdf = np.take(p_min, g).astype(np.float64) / self.filter_glossy
+            blur = np.where(blur_pdf < 1.0, np.sqrt(np.maximum(1.0 - blur_pdf, 0.0)) * 0.5, 0.0)
         vertex = VertexBSDF(self.scene.materials, np.take(self.scene.triangle_material, t), rows(self.albedo, t),
-                            rows(nrm, g), rows(wi, g), geometric=rows(gnrm, g))
+                            rows(nrm, g), rows(wi, g), geometric=rows(gnrm, g), blur=blur)
         return GlossyRows(len(tri), g, vertex)
 
     def _sample_glossy(self, glossy_rows, u, d, w, beta):
@@ -349,6 +371,11 @@ class IndirectTracer:
         q = np.full(len(d), np.nan, np.float32)
         q[g] = pdf
         return d, w, beta, q
+
+
+def _take(a, index):
+    """``a[index]``, or None for None (optional per-path arrays)."""
+    return None if a is None else np.take(a, index)
 
 
 def _select_rows(index, *arrays):

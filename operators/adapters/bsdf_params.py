@@ -93,20 +93,18 @@ def material_lobes(reader, mat):
     return lobes
 
 
-def cycles_glossy_warnings(scene, arrays):
-    """Warnings for the Cycles settings that make Cycles' own bake of a scene with glossy
-    surfaces (``arrays.has_glossy()``) differ from LMDP's: Filter Glossy (``blur_glossy``)
-    roughens glossy lobes after a diffuse bounce, Reflective Caustics off drops them, and Glossy
-    or Max bounces other than the path length N = min(Max, Diffuse) (LMDP does not count glossy
-    bounces apart: its paths keep N vertices of any kind)."""
+def cycles_glossy_settings(scene, arrays):
+    """The Cycles settings of ``scene`` that change how its glossy surfaces (``arrays.has_glossy()``)
+    bake: Filter Glossy (``blur_glossy``) goes into ``arrays.materials.filter_glossy`` (Cycles
+    roughens glossy lobes after a diffuse bounce, and so does the tracer); returns warnings for
+    what is not followed: Reflective Caustics off (Cycles drops glossy lobes after a diffuse
+    bounce) and Glossy or Max bounces other than the path length N = min(Max, Diffuse) (LMDP
+    does not count glossy bounces apart: its paths keep N vertices of any kind)."""
     cycles = getattr(scene, "cycles", None)
     if cycles is None or not arrays.has_glossy():
         return []
+    arrays.materials.filter_glossy = max(float(cycles.blur_glossy), 0.0)
     out = []
-    if cycles.blur_glossy > 0:
-        out.append(f"Cycles' Filter Glossy ({cycles.blur_glossy:g}) blurs glossy reflections seen after a "
-                   "diffuse bounce in Cycles' own bakes; LMDP bakes them unblurred (set Light Paths > "
-                   "Caustics > Filter Glossy to 0 for the same result in Cycles)")
     if not cycles.caustics_reflective:
         out.append("Cycles' Reflective Caustics is off: Cycles' bakes drop glossy reflections after the "
                    "texel's diffuse bounce; LMDP keeps them")

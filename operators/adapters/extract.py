@@ -35,7 +35,7 @@ import numpy as np
 from ...lmdp_addon.bsdf import MaterialTable
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
-from .bsdf_params import cycles_glossy_warnings, material_lobes
+from .bsdf_params import cycles_glossy_settings, material_lobes
 from .materials import NODE_MULTIPLY, slot_materials
 
 #: Cycles' default surface (a polygon without material): Diffuse BSDF, colour 0.8.
@@ -562,5 +562,5 @@ def extract_scene(context, selected_objects, depsgraph=None):
         warnings.append("Only area lights are modelled; skipped " + ", ".join(skipped_lights)
                         + ": use an area light or an emissive mesh instead")
     arrays = builder.scene_arrays(reader.world(depsgraph.scene.world), warnings)
-    arrays.warnings.extend(cycles_glossy_warnings(depsgraph.scene, arrays))
+    arrays.warnings.extend(cycles_glossy_settings(depsgraph.scene, arrays))
     return arrays
