@@ -24,27 +24,47 @@ from ...lmdp_addon import bsdf
 _OTHER_DISTRIBUTIONS = {'BECKMANN': "Beckmann", 'ASHIKHMIN_SHIRLEY': "Ashikhmin-Shirley"}
 
 
+def _finite(reader, node, owner, name, value, default):
+    """``value`` where it is finite, else ``default`` with a warning naming the input."""
+    value = np.asarray(value, dtype=np.float64)
+    if np.all(np.isfinite(value)):
+        return value if value.ndim else float(value)
+    reader.warn(f"{owner}: '{node.name}' {name} is not a finite number; LMDP uses {np.round(default, 3)}")
+    return default
+
+
+def _value(reader, node, owner, name, default):
+    return _finite(reader, node, owner, name, reader.value(node, name, owner), default)
+
+
+def _colour(reader, node, owner, name, default):
+    return _finite(reader, node, owner, name, reader.colour(node, name, owner), np.full(3, default))
+
+
 def _principled(reader, node, owner, scale):
-    value = lambda name: reader.value(node, name, owner)  # noqa: E731
-    tint = reader.colour(node, "Specular Tint", owner) if "Specular Tint" in node.inputs else np.ones(3)
     for name in ("Coat Weight", "Sheen Weight", "Anisotropic", "Thin Film Thickness"):
-        if name in node.inputs and value(name) > 0:
-            reader.warn(f"{owner}: Principled BSDF '{node.name}' {name} {value(name):g} is not modelled "
-                        "(LMDP keeps its diffuse, specular and metallic parts)")
-    return bsdf.principled_lobes(reader.colour(node, "Base Color", owner), value("Metallic"), value("Roughness"),
-                                 value("IOR"), value("Specular IOR Level"), tint, value("Transmission Weight"),
+        if name in node.inputs and _value(reader, node, owner, name, 0.0) > 0:
+            reader.warn(f"{owner}: Principled BSDF '{node.name}' {name} {reader.value(node, name, owner):g} is "
+                        "not modelled (LMDP keeps its diffuse, specular and metallic parts)")
+    tint = _colour(reader, node, owner, "Specular Tint", 1.0) if "Specular Tint" in node.inputs else np.ones(3)
+    return bsdf.principled_lobes(_colour(reader, node, owner, "Base Color", 0.8),
+                                 _value(reader, node, owner, "Metallic", 0.0),
+                                 _value(reader, node, owner, "Roughness", 0.5),
+                                 _value(reader, node, owner, "IOR", 1.5),
+                                 _value(reader, node, owner, "Specular IOR Level", 0.5), tint,
+                                 _value(reader, node, owner, "Transmission Weight", 0.0),
                                  multiscatter=getattr(node, "distribution", 'MULTI_GGX') == 'MULTI_GGX',
                                  scale=scale)
 
 
 def _glossy(reader, node, owner, scale):
-    colour = np.maximum(reader.colour(node, "Color", owner), 0.0)
-    roughness = float(np.clip(reader.value(node, "Roughness", owner), 0.0, 1.0))
+    colour = np.maximum(_colour(reader, node, owner, "Color", 0.8), 0.0)
+    roughness = float(np.clip(_value(reader, node, owner, "Roughness", 0.5), 0.0, 1.0))
     distribution = getattr(node, "distribution", 'MULTI_GGX')
     if distribution in _OTHER_DISTRIBUTIONS:
         reader.warn(f"{owner}: Glossy BSDF '{node.name}' uses the {_OTHER_DISTRIBUTIONS[distribution]} "
                     "distribution; LMDP reflects it as GGX of the same roughness")
-    if "Anisotropy" in node.inputs and abs(reader.value(node, "Anisotropy", owner)) > 1e-4:
+    if "Anisotropy" in node.inputs and abs(_value(reader, node, owner, "Anisotropy", 0.0)) > 1e-4:
         reader.warn(f"{owner}: Glossy BSDF '{node.name}' anisotropy is not modelled (isotropic GGX)")
     return [dict(kind=bsdf.GLOSSY, weight=scale * colour, roughness=roughness,
                  multiscatter=distribution == 'MULTI_GGX')]

@@ -236,3 +236,24 @@ def test_glossy_box_guided_and_final_gather_match_cycles(fresh_scene, lmdp_ext, 
     if mode == "GUIDED":
         assert_means_agree(ours, cyc, var_o, var_c)
     assert np.all(np.abs(rel) < 0.02 + 2.0 * sigma), rel
+
+
+def test_hostile_glossy_inputs_are_named_and_bake(fresh_scene, lmdp_ext):
+    """A non-finite Roughness (named in a warning), an infinite IOR (Blender clamps it), a huge
+    Specular IOR Level, a negative Glossy colour and a Glossy BSDF with the Beckmann distribution
+    (named): the bake runs and gives finite values."""
+    build("CORNELL_BOX", lmdp_ext)
+    floor = new_material("Odd", "ShaderNodeBsdfPrincipled", Roughness=float("nan"), IOR=float("inf"),
+                         **{"Specular IOR Level": 50.0})
+    assign(bpy.data.objects["Floor"], floor)
+    glossy = new_material("Beckmann", "ShaderNodeBsdfGlossy", Color=(-1.0, 0.5, 2.0, 1.0), Roughness=0.3)
+    glossy.node_tree.nodes["Glossy BSDF"].distribution = 'BECKMANN'
+    assign(bpy.data.objects["BackWall"], glossy)
+    extract = lmdp_ext.sub("operators.adapters.extract")
+    arrays = extract.extract_scene(bpy.context, [bpy.data.objects["TallBox"]])
+    text = "\n".join(arrays.warnings)
+    assert "'Principled BSDF' Roughness is not a finite number" in text
+    assert "Beckmann" in text
+    assert np.all(np.isfinite(arrays.materials.weight)) and np.all(np.isfinite(arrays.materials.eta))
+    ob = lmdp_bake(lmdp_ext, "TallBox", "UNGUIDED", 8, 16)
+    assert np.all(np.isfinite(ob.value)) and ob.value.mean() > 0
