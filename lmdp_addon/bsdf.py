@@ -540,12 +540,13 @@ class VertexBSDF:
         total = self.total_sample_weight[rows]
         return f, np.where(total > 0, pdf / np.where(total > 0, total, 1.0), 0.0)
 
-    def sample(self, u):
+    def sample(self, u, return_lobe=False):
         """Directions ``wo (k, 3)``, weights ``f cos / p (k, 3)`` and the mixture pdf ``p (k,)``
         from uniforms ``u (k, 3)`` (u[:, 2] picks the lobe by sampling weight, u[:, :2] the
         direction). Absorbed samples (below the geometric or shading surface, or no lobe) have
         weight 0; a mirror lobe's sample gets Cycles' stand-in pdf (1e6 x its selection
-        probability) and the weight of its Fresnel alone."""
+        probability) and the weight of its Fresnel alone. ``return_lobe``: also ``(k,)`` bool,
+        a microfacet lobe was sampled (a glossy bounce, Cycles' LABEL_GLOSSY)."""
         u = np.asarray(u, dtype=np.float64)
         k = self.k
         total = np.where(self.total_sample_weight > 0, self.total_sample_weight, 1.0)
@@ -586,6 +587,8 @@ class VertexBSDF:
             pdf[m] = SINGULAR_PDF * prob
         weight[~valid] = 0.0
         pdf = np.where(valid, pdf, 0.0)
+        if return_lobe:
+            return wo, weight, pdf, microfacet
         return wo, weight, pdf
 
     def _mirror_fresnel(self, rows, lobes):

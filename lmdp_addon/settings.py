@@ -38,6 +38,9 @@ class Settings:
     guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
     max_bounces: int = 8              #: path length N of the tracer (Russian roulette after 3);
                                       #: the Blender layer puts LightPaths.path_length here
+    # Glossy surfaces: bounces counted apart, as Cycles does (-1: no separate limit, N)
+    glossy_bounces: int = -1          #: glossy bounces a path may make (Cycles' Glossy bounces)
+    total_bounces: int = -1           #: bounces of any kind (Cycles' Max Bounces); N limits the diffuse ones
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
@@ -70,10 +73,10 @@ class LightPaths:
     ``SCENE``: the scene's Cycles Light Paths, as Cycles' own bake follows them. Cycles stops a
     path after the vertex whose bounce count reaches ``max_bounces`` or whose diffuse bounce count
     reaches ``diffuse_bounces`` (``path_state_next``, both limits + 1 in the kernel); the engine's
-    path length is N = min(max_bounces, diffuse_bounces) vertices of any kind (measured against
-    Cycles' bakes: docs/design.md): glossy vertices (``bsdf``) are not counted apart, and
-    Transparent surfaces absorb, so ``glossy_bounces`` and ``transparent_max_bounces`` are
-    recorded only (the capture warns when Cycles' would differ on glossy scenes). ``clamp_indirect`` (Cycles'
+    path length is N = min(max_bounces, diffuse_bounces) (measured against Cycles' bakes:
+    docs/design.md); on glossy surfaces (``bsdf``) a path counts its glossy bounces apart as
+    Cycles does: at most ``glossy_bounces`` glossy, N diffuse and ``max_bounces`` in all
+    (``apply``). Transparent surfaces absorb, so ``transparent_max_bounces`` is recorded only. ``clamp_indirect`` (Cycles'
     ``sample_clamp_indirect``) is never applied: the engine's value is the unclamped one.
     ``CUSTOM``: N = ``Settings.max_bounces``.
     """
@@ -105,8 +108,14 @@ class LightPaths:
         return self.source == "SCENE" and self.clamp_indirect > 0
 
     def apply(self, settings):
-        """``settings`` with ``max_bounces`` = this path length."""
-        return replace(settings, max_bounces=self.path_length)
+        """``settings`` with ``max_bounces`` = this path length and, for SCENE, Cycles' Glossy and
+        Max bounces as ``glossy_bounces`` / ``total_bounces`` (paths through glossy surfaces
+        count their glossy bounces apart; CUSTOM: -1, no separate limits)."""
+        if self.source != "SCENE":
+            return replace(settings, max_bounces=self.path_length, glossy_bounces=-1, total_bounces=-1)
+        glossy = -1 if self.glossy_bounces is None else max(int(self.glossy_bounces), 0)
+        return replace(settings, max_bounces=self.path_length, glossy_bounces=glossy,
+                       total_bounces=max(int(self.max_bounces), self.path_length))
 
     def warnings(self):
         if not self.clamp_ignored:

@@ -222,7 +222,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
         if caster is None and guide.same_scene:  # same geometry: the build's BVH serves
             caster = lmdp.dynamics.caster
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
-                            guide_fraction=settings.guide_fraction, caster=caster)
+                            guide_fraction=settings.guide_fraction, caster=caster,
+                            glossy_bounces=settings.glossy_bounces, total_bounces=settings.total_bounces)
     return tracer, guide, info
 
 

@@ -92,10 +92,13 @@ class IndirectTracer:
     guide_fraction  α of the mixture
     rr_start        first vertex index at which Russian roulette may end a path
     caster          the :class:`~lmdp_addon.raycast.RayCaster` to trace with (default: a new one)
+    glossy_bounces, total_bounces  on glossy scenes, Cycles' Glossy and Max bounces: a path keeps
+                    at most ``max_bounces`` diffuse, ``glossy_bounces`` glossy and
+                    ``total_bounces`` bounces in all (-1: no separate limit, ``max_bounces``)
     """
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
-                 guide_fraction=0.5, rr_start=3, caster=None):
+                 guide_fraction=0.5, rr_start=3, caster=None, glossy_bounces=-1, total_bounces=-1):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -134,6 +137,11 @@ class IndirectTracer:
         #: glossy lobes at a vertex get α ≥ 0.5 √(1 - p_min / filter), p_min the smallest density
         #: of the path's sampled rays so far (Cycles' ``surface_shader_prepare_closures``).
         self.filter_glossy = float(scene.materials.filter_glossy) if self.glossy is not None else 0.0
+        #: Bounce limits of glossy scenes (Cycles' path_state_next): diffuse N, glossy, total.
+        self.total_limit = max(int(total_bounces), self.max_bounces) if total_bounces >= 0 else self.max_bounces
+        self.glossy_limit = int(glossy_bounces) if glossy_bounces >= 0 else self.total_limit
+        if self.glossy is None:
+            self.total_limit = self.max_bounces
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None):
@@ -172,6 +180,7 @@ class IndirectTracer:
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
         p_min = (np.maximum(cos_prev, 0.0) * INV_PI).astype(np.float32) if self.filter_glossy > 0 else None
+        n_glossy = np.zeros(len(idx), np.int16) if self.glossy is not None else None   # glossy bounces
         bounce = 1
         q_prev = None
         while len(idx):
@@ -182,12 +191,15 @@ class IndirectTracer:
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev)
-            if bounce > self.max_bounces:
+            if bounce > self.total_limit:
                 break
+            if n_glossy is not None:   # Cycles' diffuse and glossy limits (the texel's bounce is diffuse)
+                within = ((bounce - n_glossy) <= self.max_bounces) & (n_glossy <= self.glossy_limit)
+                h = h[within[h]]
             # ---- the vertex y_bounce: β_k = β_{k-1} w_{k-1} ρ(y_k) ----
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
-            p_min = _take(p_min, h)
+            p_min, n_glossy = _take(p_min, h), _take(n_glossy, h)
             pos, nrm, gnrm, front, beta_hit = self._vertices(d, tri, bu, bv, w, beta)
             glossy = None if self.glossy is None else np.flatnonzero(self.glossy[tri])
             if glossy is not None and len(glossy):
@@ -203,12 +215,12 @@ class IndirectTracer:
                                           rng, stats)
                 idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
                     live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
-                p_min = _take(p_min, live)
+                p_min, n_glossy = _take(p_min, live), _take(n_glossy, live)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
                 idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
                     np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
-                p_min = _take(p_min, np.flatnonzero(alive))
+                p_min, n_glossy = _take(p_min, np.flatnonzero(alive)), _take(n_glossy, np.flatnonzero(alive))
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
@@ -230,7 +242,7 @@ class IndirectTracer:
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
                 idx, pos, nrm, gnrm, lift, vstates = _select_rows(survive, idx, pos, nrm, gnrm, lift, vstates)
-                p_min = _take(p_min, survive)
+                p_min, n_glossy = _take(p_min, survive), _take(n_glossy, survive)
                 if glossy_rows is not None:
                     glossy_rows = glossy_rows.select(survive)
                 if len(idx) == 0:
@@ -241,7 +253,8 @@ class IndirectTracer:
             w = self._above_geometry(w, gnrm, d)
             q_prev = None
             if glossy_rows is not None:
-                d, w, beta, q_prev = self._sample_glossy(glossy_rows, u, d, w, beta)
+                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta)
+                n_glossy = n_glossy + lobe
             if p_min is not None:
                 p_ray = np.maximum(cos_prev, 0.0) * INV_PI
                 if q_prev is not None:
@@ -254,7 +267,7 @@ class IndirectTracer:
                     keep, idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
                 if q_prev is not None:
                     q_prev = np.take(q_prev, keep)
-                p_min = _take(p_min, keep)
+                p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
             bounce += 1
         return L, stats
 
@@ -358,10 +371,11 @@ class IndirectTracer:
 
     def _sample_glossy(self, glossy_rows, u, d, w, beta):
         """Directions of the glossy rows drawn from their BSDF (``u``: their uniforms): the
-        weight ``f cos / p`` joins β (w = 1, 0 when absorbed); returns ``(d, w, beta, q)`` with
-        q (k,) float32 the BSDF density of those rays (NaN on the other rows, for MIS)."""
+        weight ``f cos / p`` joins β (w = 1, 0 when absorbed); returns ``(d, w, beta, q, lobe)``
+        with q (k,) float32 the BSDF density of those rays (NaN on the other rows, for MIS) and
+        lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce)."""
         g = np.flatnonzero(glossy_rows.mask)
-        wo, weight, pdf = glossy_rows.bsdf.sample(rows(u, g))
+        wo, weight, pdf, microfacet = glossy_rows.bsdf.sample(rows(u, g), return_lobe=True)
         d = d.copy()
         d[g] = wo
         w = w.copy()
@@ -370,7 +384,9 @@ class IndirectTracer:
         beta[g] = rows(beta, g) * weight
         q = np.full(len(d), np.nan, np.float32)
         q[g] = pdf
-        return d, w, beta, q
+        lobe = np.zeros(len(d), np.int16)
+        lobe[g] = microfacet
+        return d, w, beta, q, lobe
 
 
 def _take(a, index):

@@ -116,10 +116,9 @@ def material_lobes(reader, mat):
 def cycles_glossy_settings(scene, arrays):
     """The Cycles settings of ``scene`` that change how its glossy surfaces (``arrays.has_glossy()``)
     bake: Filter Glossy (``blur_glossy``) goes into ``arrays.materials.filter_glossy`` (Cycles
-    roughens glossy lobes after a diffuse bounce, and so does the tracer); returns warnings for
+    roughens glossy lobes after a diffuse bounce, and so does the tracer); returns a warning for
     what is not followed: Reflective Caustics off (Cycles drops glossy lobes after a diffuse
-    bounce) and Glossy or Max bounces other than the path length N = min(Max, Diffuse) (LMDP
-    does not count glossy bounces apart: its paths keep N vertices of any kind)."""
+    bounce). (Glossy and Max bounces reach the tracer through ``LightPaths``.)"""
     cycles = getattr(scene, "cycles", None)
     if cycles is None or not arrays.has_glossy():
         return []
@@ -128,11 +127,4 @@ def cycles_glossy_settings(scene, arrays):
     if not cycles.caustics_reflective:
         out.append("Cycles' Reflective Caustics is off: Cycles' bakes drop glossy reflections after the "
                    "texel's diffuse bounce; LMDP keeps them")
-    n = min(cycles.max_bounces, cycles.diffuse_bounces)
-    if cycles.glossy_bounces != n or cycles.max_bounces != n:
-        out.append(f"Cycles counts glossy bounces apart (Max {cycles.max_bounces}, Diffuse "
-                   f"{cycles.diffuse_bounces}, Glossy {cycles.glossy_bounces}); LMDP's paths keep "
-                   f"{n} = min(Max, Diffuse) vertices of any kind, so paths through glossy surfaces end "
-                   "at another length than in Cycles: set Max, Diffuse and Glossy bounces equal for the "
-                   "same result")
     return out
