@@ -281,3 +281,24 @@ def test_hostile_glossy_inputs_are_named_and_bake(fresh_scene, lmdp_ext):
     assert np.all(np.isfinite(arrays.materials.weight)) and np.all(np.isfinite(arrays.materials.eta))
     ob = lmdp_bake(lmdp_ext, "TallBox", "UNGUIDED", 8, 16)
     assert np.all(np.isfinite(ob.value)) and ob.value.mean() > 0
+
+
+def test_glossy_box_with_cycles_default_light_paths(fresh_scene, lmdp_ext, demo):
+    """GLOSSY_BOX under Blender's default Cycles Light Paths (Max 12, Diffuse 4, Glossy 4, Filter
+    Glossy 1; clamping off, which the engine never applies): the floor's bake with the add-on's
+    defaults (light paths from the scene) matches Cycles'."""
+    scene = build("GLOSSY_BOX", lmdp_ext)
+    cycles = scene.cycles
+    cycles.max_bounces, cycles.diffuse_bounces, cycles.glossy_bounces, cycles.blur_glossy = 12, 4, 4, 1.0
+    floor = bpy.data.objects["Floor"]
+    refs = np.stack([demo.bake_cycles(bpy.context, floor, 'DIFFUSE', ('INDIRECT',), RESOLUTION, samples=1024,
+                                      margin=0, seed=seed)[..., :3] for seed in (1, 2)])
+    s = scene.lmdp
+    s.bake_mode, s.bake_resolution, s.bake_samples, s.bake_margin, s.seed = 'UNGUIDED', RESOLUTION, 512, 0, 11
+    select([floor])
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    ob = lmdp_ext.sub("operators.session").session_for(scene).require("bake").object("Floor")
+    ours, cyc, var_o, var_c = compare(ob, refs)
+    rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
+    print(f"GLOSSY_BOX Floor, Cycles defaults: {np.round(rel * 100, 2)} % ± {np.round(rel_sigma * 100, 2)} %")
+    assert np.all(np.abs(rel) < 0.02), rel
