@@ -545,8 +545,9 @@ class VertexBSDF:
         from uniforms ``u (k, 3)`` (u[:, 2] picks the lobe by sampling weight, u[:, :2] the
         direction). Absorbed samples (below the geometric or shading surface, or no lobe) have
         weight 0; a mirror lobe's sample gets Cycles' stand-in pdf (1e6 x its selection
-        probability) and the weight of its Fresnel alone. ``return_lobe``: also ``(k,)`` bool,
-        a microfacet lobe was sampled (a glossy bounce, Cycles' LABEL_GLOSSY)."""
+        probability) and the weight of its Fresnel alone. ``return_lobe``: also ``(k,)`` int8,
+        the kind of lobe sampled: 0 diffuse, 1 microfacet (a glossy bounce, Cycles'
+        LABEL_GLOSSY), 2 a mirror (LABEL_SINGULAR)."""
         u = np.asarray(u, dtype=np.float64)
         k = self.k
         total = np.where(self.total_sample_weight > 0, self.total_sample_weight, 1.0)
@@ -588,7 +589,7 @@ class VertexBSDF:
         weight[~valid] = 0.0
         pdf = np.where(valid, pdf, 0.0)
         if return_lobe:
-            return wo, weight, pdf, microfacet
+            return wo, weight, pdf, (microfacet.astype(np.int8) + mirror.astype(np.int8))
         return wo, weight, pdf
 
     def _mirror_fresnel(self, rows, lobes):

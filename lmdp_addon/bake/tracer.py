@@ -227,8 +227,6 @@ class IndirectTracer:
             glossy_rows = self._glossy_rows(tri, nrm, gnrm, wi, stats, p_min)
             if self.guide is not None:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
-                if glossy_rows is not None:
-                    vstates[glossy_rows.mask] = -1   # glossy vertices sample their BSDF
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
             direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift,
@@ -249,11 +247,15 @@ class IndirectTracer:
                     break
             # ---- the next direction ω_bounce ----
             u = rng.random((len(idx), 3))
+            glossy_states = None
+            if glossy_rows is not None and self.guide is not None:
+                glossy_states = vstates
+                vstates = np.where(glossy_rows.mask, -1, vstates)   # the guide mixes with the BSDF there
             d, w, cos_prev = self.directions.sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
             w = self._above_geometry(w, gnrm, d)
             q_prev = None
             if glossy_rows is not None:
-                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta)
+                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta, glossy_states)
                 n_glossy = n_glossy + lobe
             if p_min is not None:
                 p_ray = np.maximum(cos_prev, 0.0) * INV_PI
@@ -349,6 +351,35 @@ class IndirectTracer:
         return np.flatnonzero(~done)
 
 
+    def _guided_glossy(self, vertex, u, states):
+        """GUIDED at glossy vertices (:meth:`_sample_glossy`): ``(wo, f cos / p, q, lobe kind)``
+        with p = α g_s + (1 - α) p_bsdf at rows with a state (exact; a mirror lobe's sample
+        keeps its delta weight / (1 - α)) and the BSDF alone elsewhere; q is the BSDF density."""
+        alpha = self.guide_fraction
+        has = states >= 0
+        guided = has & (u[:, 2] < alpha)
+        ub = np.array(u, dtype=np.float64)
+        rescale = has & ~guided
+        ub[rescale, 2] = (ub[rescale, 2] - alpha) / max(1.0 - alpha, 1e-12)
+        wo, weight, pdf, kind = vertex.sample(ub, return_lobe=True)
+        gi = np.flatnonzero(guided)
+        if len(gi):
+            wo[gi] = self.guide.sample(states[gi], ub[gi, :2], first=False)
+            kind[gi] = 0          # a guided bounce counts as diffuse
+        mix = np.flatnonzero(has & (kind < 2))
+        if len(mix):
+            f, p_bsdf = vertex.eval(wo[mix], mix)
+            g_s = self.guide.density(states[mix], wo[mix].astype(np.float32), first=False)
+            p_mix = alpha * g_s + (1.0 - alpha) * p_bsdf
+            above = np.sum(vertex.ng[mix] * wo[mix], axis=1) > 0
+            ok = above & (p_mix > 0) & (np.isin(mix, gi) | (pdf[mix] > 0))
+            weight[mix] = np.where(ok[:, None], f / np.where(p_mix > 0, p_mix, 1.0)[:, None], 0.0)
+            pdf[mix] = np.where(ok, np.maximum(p_bsdf, 1e-30), 0.0)
+        mirror = np.flatnonzero(has & (kind == 2))
+        if len(mirror):
+            weight[mirror] /= max(1.0 - alpha, 1e-12)
+        return wo, weight, pdf, kind
+
     # ---- glossy vertices ----------------------------------------------------------------------------
     def _glossy_rows(self, tri, nrm, gnrm, wi, stats, p_min=None):
         """The :class:`~lmdp_addon.bsdf.GlossyRows` of the vertices on glossy triangles ``tri``
@@ -369,13 +400,20 @@ class IndirectTracer:
                             rows(nrm, g), rows(wi, g), geometric=rows(gnrm, g), blur=blur)
         return GlossyRows(len(tri), g, vertex)
 
-    def _sample_glossy(self, glossy_rows, u, d, w, beta):
-        """Directions of the glossy rows drawn from their BSDF (``u``: their uniforms): the
-        weight ``f cos / p`` joins β (w = 1, 0 when absorbed); returns ``(d, w, beta, q, lobe)``
-        with q (k,) float32 the BSDF density of those rays (NaN on the other rows, for MIS) and
+    def _sample_glossy(self, glossy_rows, u, d, w, beta, states=None):
+        """Directions of the glossy rows drawn from their BSDF (``u``: their uniforms), or in
+        GUIDED mode at rows with a state (``states`` of the wavefront, -1: none) from the
+        one-sample mixture ``α g_s + (1 - α) p_bsdf`` (u[:, 2] < α picks the guide, else it is
+        rescaled to pick the lobe): the weight ``f cos / p`` joins β (w = 1, 0 when absorbed);
+        returns ``(d, w, beta, q, lobe)`` with q (k,) float32 the BSDF density of those rays (NaN
+        on the other rows; the MIS partition of unity, as next-event estimation uses it) and
         lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce)."""
         g = np.flatnonzero(glossy_rows.mask)
-        wo, weight, pdf, microfacet = glossy_rows.bsdf.sample(rows(u, g), return_lobe=True)
+        if states is not None and np.any(np.take(states, g) >= 0):
+            wo, weight, pdf, kind = self._guided_glossy(glossy_rows.bsdf, rows(u, g), np.take(states, g))
+        else:
+            wo, weight, pdf, kind = glossy_rows.bsdf.sample(rows(u, g), return_lobe=True)
+        microfacet = kind > 0
         d = d.copy()
         d[g] = wo
         w = w.copy()

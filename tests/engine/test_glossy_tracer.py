@@ -2,8 +2,9 @@
 
 A white Multiscatter GGX Glossy patch under a uniform sky reflects the sky's radiance L towards
 every direction (white furnace: its directional albedo is 1), so the receiver below it sees
-L F, F the point-to-square form factor, for every roughness, down to a mirror; GUIDED (BSDF
-sampling at glossy vertices) and FINAL_GATHER (glossy hits continue as paths) agree with it.
+L F, F the point-to-square form factor, for every roughness, down to a mirror; GUIDED (the
+guide mixed with the BSDF at glossy vertices) and FINAL_GATHER (glossy hits continue as paths)
+agree with it.
 A Lambertian scene that carries a material table traces bit for bit as without one.
 """
 import numpy as np
@@ -53,13 +54,15 @@ def test_lambertian_scene_with_a_material_table_traces_bit_for_bit():
     assert np.array_equal(a, b)
 
 
-@pytest.mark.parametrize("mode", ["GUIDED", "FINAL_GATHER"])
-def test_guided_and_final_gather_on_a_glossy_patch(mode):
+@pytest.mark.parametrize("mode,fraction", [("GUIDED", 0.5), ("GUIDED", 0.9), ("FINAL_GATHER", 0.5)])
+def test_guided_and_final_gather_on_a_glossy_patch(mode, fraction):
+    """GUIDED mixes the guide with the BSDF at glossy vertices (exact mixture pdf): unbiased for
+    every guide fraction."""
     scene = glossy_patch(0.3)
     lmdp = pipeline.run_all(scene, Settings(point_count=512, cost_mode="PHYSICAL"))
     guide = build_guide(scene, lmdp)
     gather = build_gather(guide, lmdp, max_bounces=4) if mode == "FINAL_GATHER" else None
-    tracer = IndirectTracer(scene, mode, max_bounces=4, guide=guide, gather=gather, guide_fraction=0.5)
+    tracer = IndirectTracer(scene, mode, max_bounces=4, guide=guide, gather=gather, guide_fraction=fraction)
     state = guide.states_at(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0]))[0]
     values, stats = trace_at(tracer, (0.0, 0.0, 0.0), (0, 0, 1), 100_000, state=state)
     assert stats.glossy_vertices > 0
