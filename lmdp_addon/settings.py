@@ -3,7 +3,7 @@
 Operators copy ``scene.lmdp`` into a :class:`Settings` (``Settings.from_mapping``) and pass it to
 the engine; scripts and tests build one directly.
 """
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 COST_MODES = ("THESIS", "PHYSICAL")
 SOLVERS = ("POWER", "DIRECT", "ITERATIVE")
@@ -38,9 +38,10 @@ class Settings:
     guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
     max_bounces: int = 8              #: path length N of the tracer (Russian roulette after 3);
                                       #: the Blender layer puts LightPaths.path_length here
-    # Glossy surfaces: bounces counted apart, as Cycles does (-1: no separate limit, N)
-    glossy_bounces: int = -1          #: glossy bounces a path may make (Cycles' Glossy bounces)
-    total_bounces: int = -1           #: bounces of any kind (Cycles' Max Bounces); N limits the diffuse ones
+    # Glossy surfaces: bounces counted apart, as Cycles does (-1: no separate limit, N). Not user
+    # settings (no scene.lmdp property): LightPaths.apply sets them from the scene's Cycles Light Paths.
+    glossy_bounces: int = field(default=-1, metadata={"light_paths": True})  #: Cycles' Glossy bounces
+    total_bounces: int = field(default=-1, metadata={"light_paths": True})   #: Cycles' Max Bounces (any kind)
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)

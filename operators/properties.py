@@ -182,20 +182,6 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
                     "bounces at least as many; Russian roulette starts after 3 (bounces)",
         default=_DEFAULTS.max_bounces, min=1, max=1024, soft_max=64,
     )
-    glossy_bounces: IntProperty(
-        name="Glossy Bounces",
-        description="Glossy bounces a path may make on glossy surfaces (Principled specular and metallic, "
-                    "Glossy BSDF), as Cycles' Glossy bounces; -1: no separate limit. Bake and Run All set it "
-                    "from the scene's Cycles Light Paths (bounces)",
-        default=_DEFAULTS.glossy_bounces, min=-1, max=1024, soft_max=64,
-    )
-    total_bounces: IntProperty(
-        name="Total Bounces",
-        description="Bounces of any kind a path through glossy surfaces may make, as Cycles' Max Bounces "
-                    "(Max Bounces above limits the diffuse ones); -1: no separate limit. Bake and Run All set "
-                    "it from the scene's Cycles Light Paths (bounces)",
-        default=_DEFAULTS.total_bounces, min=-1, max=1024, soft_max=64,
-    )
     # -- General ------------------------------------------------------------------------------------
     seed: IntProperty(
         name="Seed",
