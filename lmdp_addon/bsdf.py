@@ -385,6 +385,33 @@ def principled_lobes(base, metallic=0.0, roughness=0.5, ior=1.5, ior_level=0.5, 
 
 # ---- the BSDF at path vertices ------------------------------------------------------------------------
 
+def valid_specular_normals(ng, wi, n):
+    """Cycles' ``ensure_valid_specular_reflection`` (k, 3): the shading normals ``n`` turned
+    towards the geometric ``ng`` just enough that the mirror direction of ``wi`` rises at least
+    min(0.9 ng·wi, 0.01) above the geometric surface; unchanged where it already does (flat
+    triangles: always)."""
+    ng, wi, n = (np.asarray(a, dtype=np.float64) for a in (ng, wi, n))
+    iz = np.sum(wi * ng, axis=1)
+    r = 2.0 * np.sum(n * wi, axis=1)[:, None] * n - wi
+    threshold = np.minimum(0.9 * iz, 0.01)
+    bad = np.flatnonzero(np.sum(ng * r, axis=1) < threshold)
+    if len(bad) == 0:
+        return n
+    g, i, m, t, z = ng[bad], wi[bad], n[bad], threshold[bad], iz[bad]
+    x = m - np.sum(m * g, axis=1)[:, None] * g
+    length = np.linalg.norm(x, axis=1, keepdims=True)
+    x = np.where(length > 1e-12, x / np.maximum(length, 1e-300), m)
+    ix = np.sum(i * x, axis=1)
+    a = ix * ix + z * z
+    b = 2.0 * (a + z * t)
+    c = (t + z) ** 2
+    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
+    nz2 = np.where(ix < 0, 0.25 * (b + root) / a, 0.25 * (b - root) / a)
+    out = n.copy()
+    out[bad] = np.sqrt(np.maximum(1.0 - nz2, 0.0))[:, None] * x + np.sqrt(np.maximum(nz2, 0.0))[:, None] * g
+    return out
+
+
 def _frames(n):
     """Tangent frames (t, b) (k, 3) about unit ``n`` (Duff et al. 2017)."""
     sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
@@ -419,7 +446,10 @@ class VertexBSDF:
         self.eta = table.eta[mat]
         self.f0 = table.f0[mat]
         self.b = table.b[mat]
-        self.mu = np.sum(self.n * self.wi, axis=1)                   # (k,)
+        #: the microfacet lobes' normal: N lifted so that ωi's mirror direction stays above Ng
+        #: (Cycles' ensure_valid_specular_reflection; N on flat triangles)
+        self.n_spec = valid_specular_normals(self.ng, self.wi, self.n) if geometric is not None else self.n
+        self.mu = np.sum(self.n_spec * self.wi, axis=1)              # (k,) cos θi of the lobes
         mu = np.clip(self.mu, 0.0, 1.0)[:, None]
         rough = np.sqrt(self.alpha)
         tables = ggx_tables()
@@ -470,11 +500,12 @@ class VertexBSDF:
         self.diffuse_sample_weight = np.abs(diffuse).mean(axis=1)
         self.total_sample_weight = self.diffuse_sample_weight + self.sample_weight.sum(axis=1)
         self.t, self.s = _frames(self.n)
+        self.ts, self.ss = _frames(self.n_spec)
         self.k = k
 
     _ROW_ARRAYS = ("n", "ng", "wi", "kind", "alpha", "eta", "f0", "b", "mu", "energy", "weight",
                    "sample_weight", "singular", "diffuse", "diffuse_sample_weight", "total_sample_weight",
-                   "t", "s")
+                   "t", "s", "n_spec", "ts", "ss")
 
     def subset(self, rows):
         """The BSDF of the vertices ``rows`` only (same setup)."""
@@ -502,7 +533,7 @@ class VertexBSDF:
     def _lobe_eval(self, wo, j, rows):
         """``(f cos (m, 3), pdf (m,))`` of microfacet lobe j (without its closure weight) for
         directions ``wo (m, 3)`` at the vertices ``rows``."""
-        n, wi = self.n[rows], self.wi[rows]
+        n, wi = self.n_spec[rows], self.wi[rows]
         cos_ni, cos_no = self.mu[rows], np.sum(n * wo, axis=1)
         alpha2 = self.alpha[rows, j] ** 2
         ok = (cos_ni > 0) & (cos_no > 0) & ~self.singular[rows, j] & (self.kind[rows, j] != NONE)
@@ -566,7 +597,7 @@ class VertexBSDF:
             g = np.flatnonzero(pick == j + 1)
             if len(g) == 0:
                 continue
-            n, t, s, wi = self.n[g], self.t[g], self.s[g], self.wi[g]
+            n, t, s, wi = self.n_spec[g], self.ts[g], self.ss[g], self.wi[g]
             sing = self.singular[g, j]
             local = np.stack([np.sum(t * wi, 1), np.sum(s * wi, 1), np.sum(n * wi, 1)], 1)
             h_local = sample_vndf(local, np.maximum(self.alpha[g, j], 1e-6), u[g, :2])
@@ -577,7 +608,7 @@ class VertexBSDF:
         f, pdf = self.eval(wo)
         microfacet = pick > 0
         valid = (np.sum(self.ng * wo, 1) > 0) & (pick <= self.kind.shape[1]) & (self.total_sample_weight > 0)
-        valid &= ~microfacet | ((np.sum(self.n * wo, 1) > 0) & (self.mu > 0))
+        valid &= ~microfacet | ((np.sum(self.n_spec * wo, 1) > 0) & (self.mu > 0))
         weight = np.where((pdf > 0)[:, None], f / np.where(pdf > 0, pdf, 1.0)[:, None], 0.0)
         m = np.flatnonzero(mirror & valid)
         if len(m):

@@ -150,3 +150,17 @@ def test_hemispherical_albedo_is_the_lmdp_albedo_of_glossy_surfaces():
     a = bsdf.lambertian_albedo(glossy)
     metal = glossy.triangle_object == glossy.object_names.index("MetalSphere")
     assert np.all(a[metal].max(axis=1) > 0.5) and np.all(glossy.triangle_albedo[metal] == 0)
+
+
+def test_valid_specular_normals_lift_the_mirror_direction():
+    """Cycles' ensure_valid_specular_reflection: a shading normal whose mirror direction of ωi
+    dips below the geometric surface is turned towards Ng until it rises to min(0.9 ωi·Ng,
+    0.01); normals whose reflection is fine (and Ng itself) are kept."""
+    ng = np.tile([0.0, 0.0, 1.0], (3, 1))
+    n = np.array([[np.sin(0.5), 0.0, np.cos(0.5)], [np.sin(0.1), 0.0, np.cos(0.1)], [0.0, 0.0, 1.0]])
+    wi = np.tile([-np.sin(1.3), 0.0, np.cos(1.3)], (3, 1))
+    out = bsdf.valid_specular_normals(ng, wi, n)
+    r = 2.0 * np.sum(out * wi, axis=1)[:, None] * out - wi
+    assert abs(r[0, 2] - min(0.9 * np.cos(1.3), 0.01)) < 1e-9
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0)
+    np.testing.assert_array_equal(out[1:], n[1:])
