@@ -152,6 +152,13 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
         raise SceneError("The scene has no light to bake: add an emissive material (Emission "
                          "shader or Principled emission), an area light, or a non-black world")
     warnings = _check_solution(scene, names, settings, lmdp, will_solve)
+    if settings.bake_mode in ("GUIDED", "FINAL_GATHER") and scene.has_glossy():
+        warnings.append("Glossy surfaces (Principled specular / metallic, Glossy BSDF): the LMDP solution "
+                        "treats them as Lambertian surfaces of their BSDF's hemispherical albedo; "
+                        + ("Final Gather continues paths that hit them and reads the solution only at "
+                           "diffuse hits (its bias grows with what glossy surfaces reflect there)"
+                           if settings.bake_mode == "FINAL_GATHER" else
+                           "the guide is mixed with their BSDF there, so the bake stays unbiased"))
     if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
                         "the optimal policy is zero; a value below 1 keeps it unbiased")

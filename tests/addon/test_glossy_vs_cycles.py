@@ -253,6 +253,8 @@ def test_glossy_box_guided_and_final_gather_match_cycles(fresh_scene, lmdp_ext, 
     select([o for o in bpy.data.objects if o.type == 'MESH' and o.name != "Light"])
     assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     ob = lmdp_bake(lmdp_ext, "Floor", mode, RESOLUTION, 256)
+    warnings = lmdp_ext.sub("operators.session").session_for(fresh_scene).require("bake").warnings
+    assert any("treats them as Lambertian surfaces" in w for w in warnings), warnings
     ours, cyc, var_o, var_c = compare(ob, refs)
     rel = ours.mean(axis=0) / cyc.mean(axis=0) - 1.0
     sigma = np.sqrt((var_o.sum(axis=0) + var_c.sum(axis=0)) / len(ours) ** 2) / cyc.mean(axis=0)
