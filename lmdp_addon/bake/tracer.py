@@ -34,6 +34,9 @@ GUIDED the one-sample mixture ``α g_s + (1 - α) cos θ / π`` of the optimal p
 nearest compatible state s and cosine sampling; FINAL_GATHER draws the first direction as GUIDED
 and ends the path at its hit y_1 with the solution's ẑ_ind there (``gather.py``), the direct
 light at y_1 by light sampling; the hits the gather cannot serve continue as GUIDED paths.
+At vertices on glossy surfaces (``SceneArrays.materials``) the BSDF of ``bsdf.VertexBSDF`` is
+sampled instead (GUIDED: mixed with the guide), with its f cos and density in next-event
+estimation and MIS, Cycles' Filter Glossy and its separate glossy bounce limit (docs/design.md).
 
 Arrays are float32 in the hot loop (positions keep ~1e-7 relative precision). Hit points are
 rebuilt from the hit's barycentrics on the hit triangle, so they lie on its plane to the
