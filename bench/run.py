@@ -43,13 +43,13 @@ def profiles():
     from bench.engine_figures import EngineProfile
     from bench.speed_error import Profile
     ladder = (4, 16, 64, 256)
-    all_cases = ("cornell", "narrow_opening", "heavy", "sun_hdri")
+    all_cases = ("cornell", "narrow_opening", "heavy", "sun_hdri", "glossy")
     light = ("cornell", "narrow_opening")
     full = Profile(
         name="full",
         cases=all_cases,
-        resolution={"cornell": 128, "narrow_opening": 128, "heavy": 128, "sun_hdri": 128},
-        ref_samples={"cornell": 1024, "narrow_opening": 1024, "heavy": 1024, "sun_hdri": 1024},
+        resolution={"cornell": 128, "narrow_opening": 128, "heavy": 128, "sun_hdri": 128, "glossy": 128},
+        ref_samples={"cornell": 1024, "narrow_opening": 1024, "heavy": 1024, "sun_hdri": 1024, "glossy": 1024},
         repeats=3,
         bounces=8,
         cycles_ladder=(1, 4, 16, 64, 256),
@@ -73,9 +73,9 @@ def profiles():
     )
     quick = Profile(
         name="quick",
-        cases=light + ("sun_hdri",),
-        resolution={"cornell": 64, "narrow_opening": 64, "sun_hdri": 64},
-        ref_samples={"cornell": 512, "narrow_opening": 512, "sun_hdri": 512},
+        cases=light + ("sun_hdri", "glossy"),
+        resolution={"cornell": 64, "narrow_opening": 64, "sun_hdri": 64, "glossy": 64},
+        ref_samples={"cornell": 512, "narrow_opening": 512, "sun_hdri": 512, "glossy": 512},
         repeats=1,
         bounces=8,
         cycles_ladder=(1, 4, 16, 64),

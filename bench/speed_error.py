@@ -38,6 +38,8 @@ CASES = {
     "heavy": dict(title="Heavy Cornell box (bumpy, subdivided), floor", kind="HEAVY", receiver="Floor"),
     "sun_hdri": dict(title="Cornell box without its lamp under city.exr, its sun through the open front, floor",
                      kind="CORNELL_BOX", receiver="Floor", world=True),
+    "glossy": dict(title="Glossy box: checkered glossy floor, metallic sphere (Principled)", kind="GLOSSY_BOX",
+                   receiver="Floor"),
 }
 
 #: Name of the Cycles-with-path-guiding curve.
@@ -108,6 +110,10 @@ def geometry_hash(scene):
               scene.world_radiance):
         h.update(np.ascontiguousarray(a).tobytes())
     h.update("\0".join(scene.object_names).encode())
+    if scene.has_glossy():   # the microfacet lobes (Lambertian scenes hash as before)
+        m = scene.materials
+        for a in (scene.triangle_material, m.kind, m.weight, m.alpha, m.eta, m.f0, m.b, m.multiscatter):
+            h.update(np.ascontiguousarray(a).tobytes())
     h.update((ROOT / "operators" / "adapters" / "demo_scenes.py").read_bytes())
     if getattr(scene, "environment", None) is not None:        # the sun + HDRI scene
         for a in scene.environment.fingerprint_arrays():
@@ -182,6 +188,9 @@ def prepare_case(key, profile, blender, cache_dir):
                     resolution=profile.resolution[key], bounces=profile.bounces,
                     ref_samples=profile.ref_samples[key])
     case.scene = scenes.build_scene_arrays(case.kind)
+    if case.scene.has_glossy():   # the GGX tables are computed once per process (Blender session): not timed
+        from lmdp_addon.bsdf import ggx_tables
+        ggx_tables()
     case.blender = blender
     with Stopwatch() as sw:
         blender.load_scene(case.kind)

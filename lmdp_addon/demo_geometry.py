@@ -26,17 +26,22 @@ Scenes (``kind``):
   point is π L F with F from :func:`point_to_parallel_square_form_factor`.
 * ``HEAVY``: the Cornell box with finely subdivided, bumpy walls and boxes (> 200k triangles), for
   benchmarks.
+* ``GLOSSY_BOX``: the Cornell box with a glossy checkered floor (Principled BSDF, roughness 0.2,
+  default specular) and a metallic sphere (Principled, Metallic 1) in place of the short box
+  (issue 18, item 3). The checker is a per-face colour (:func:`floor_checker`, the hook an image
+  texture replaces once textures reach the engine).
 """
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import bsdf
 from .errors import SceneError
 from .demo_uv import UV_PADDING, grid_uv, quad_charts, quad_dims, shelf_pack
 from .scene_arrays import SceneArrays
 
 #: Scene kinds, in the order the UI lists them.
-SCENE_KINDS = ("CORNELL_BOX", "NARROW_OPENING", "PLANE_UNDER_SKY", "PARALLEL_SQUARES", "HEAVY")
+SCENE_KINDS = ("CORNELL_BOX", "NARROW_OPENING", "PLANE_UNDER_SKY", "PARALLEL_SQUARES", "HEAVY", "GLOSSY_BOX")
 
 # Cornell box reflectances (linear RGB), close to the measured spectra of the original box.
 WHITE = (0.73, 0.73, 0.73)
@@ -53,9 +58,12 @@ class Part:
     vertices      (V, 3) float64 world metres
     faces         (F, 4) int64 quads, corners counter-clockwise seen from the front
     face_uv       (F, 4, 2) float32 UV of each quad corner (non-overlapping charts in [0, 1]^2)
-    albedo        (3,) diffuse reflectance (0 for emitters)
+    albedo        (3,) diffuse reflectance (0 for emitters); with ``principled``: its Base Color
     emission      (3,) emitted radiance W / (sr m^2) (0 for reflectors)
     two_sided_emission  bool: mesh emission is two-sided in Cycles
+    principled    None (a Diffuse BSDF) or the Principled BSDF inputs of the part's material:
+                  ``roughness``, ``metallic``, ``ior``, ``ior_level`` (``bsdf.principled_lobes``)
+    face_albedo   None or (F, 3) a colour per face (a checker) in place of ``albedo``
     """
 
     name: str
@@ -65,6 +73,8 @@ class Part:
     albedo: np.ndarray = field(default_factory=lambda: np.zeros(3))
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3))
     two_sided_emission: bool = True
+    principled: dict = None
+    face_albedo: np.ndarray = None
 
     def __post_init__(self):
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -72,6 +82,32 @@ class Part:
         self.face_uv = np.asarray(self.face_uv, dtype=np.float32).reshape(-1, 4, 2)
         self.albedo = np.asarray(self.albedo, dtype=np.float64).reshape(3)
         self.emission = np.asarray(self.emission, dtype=np.float64).reshape(3)
+        if self.face_albedo is not None:
+            self.face_albedo = np.asarray(self.face_albedo, dtype=np.float64).reshape(len(self.faces), 3)
+
+    @property
+    def base_colours(self):
+        """(C, 3) the part's distinct colours and (F,) the colour of each face."""
+        if self.face_albedo is None:
+            return self.albedo[None, :], np.zeros(len(self.faces), dtype=np.int64)
+        colours, index = np.unique(self.face_albedo, axis=0, return_inverse=True)
+        return colours, index.reshape(-1)
+
+    @property
+    def triangle_albedo(self):
+        """(2F, 3) diffuse reflectance per triangle: the face colour x (1 - Metallic)."""
+        colours, index = self.base_colours
+        diffuse = colours * (1.0 - (self.principled or {}).get("metallic", 0.0))
+        return np.repeat(diffuse[index], 2, axis=0)
+
+    def lobes(self, colour):
+        """The microfacet lobes of the part's material of Base Color ``colour`` (none for a
+        Diffuse BSDF)."""
+        if self.principled is None:
+            return []
+        p = self.principled
+        return bsdf.principled_lobes(colour, p.get("metallic", 0.0), p.get("roughness", 0.5), p.get("ior", 1.5),
+                                     p.get("ior_level", 0.5))
 
     @property
     def is_emitter(self):
@@ -304,6 +340,52 @@ def _cornell_parts(subdivisions=0, bump=0.0):
     return parts
 
 
+#: The glossy box's floor checker: 8 x 8 squares of these two colours (linear RGB).
+CHECKER_COLOURS = ((0.73, 0.73, 0.73), (0.25, 0.25, 0.25))
+#: Principled inputs of the glossy box's floor and sphere.
+GLOSSY_FLOOR = dict(roughness=0.2, metallic=0.0, ior=1.5, ior_level=0.5)
+METAL_SPHERE = dict(roughness=0.25, metallic=1.0, ior=1.5, ior_level=0.5)
+METAL_COLOUR = (0.95, 0.64, 0.54)
+
+
+def floor_checker(n, colours=CHECKER_COLOURS):
+    """(n², 3) colours of an n x n checker of the :func:`_grid` faces (row-major): the floor
+    texture of ``GLOSSY_BOX`` as per-face colours (the hook an image texture replaces)."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="xy")
+    return np.asarray(colours, dtype=np.float64)[((i + j) % 2).ravel()]
+
+
+def _sphere_part(name, center, radius, albedo, n=6, principled=None):
+    """A sphere as a cube whose faces are n x n grids pushed onto the sphere (quads only, no
+    poles), outward normals, each face of the cube its own UV chart."""
+    corners = _box_corners((0.0, 0.0, 0.0), (2.0, 2.0, 2.0))
+    quads = _box_faces()
+    dims = quad_dims(corners, quads)
+    chart_pos, chart_size = shelf_pack(dims, UV_PADDING)
+    verts, faces, uvs = [], [], []
+    offset = 0
+    for q, (lo, size) in zip(quads, zip(chart_pos, chart_size)):
+        a, b, _, d = corners[q]
+        v, f = _grid(a, b - a, d - a, n, n)
+        v = v / np.linalg.norm(v, axis=1, keepdims=True) * radius + np.asarray(center, dtype=np.float64)
+        verts.append(v)
+        faces.append(f + offset)
+        uvs.append(grid_uv(n, n, lo, lo + size))
+        offset += len(v)
+    return Part(name, np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs), albedo,
+                principled=principled)
+
+
+def _glossy_box_parts():
+    """The Cornell box with a glossy checkered floor and a metallic sphere for the short box."""
+    parts = [p for p in _cornell_parts() if p.name not in ("Floor", "ShortBox")]
+    n = 8
+    v, f = _grid((-0.5, -0.5, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), n, n)
+    floor = Part("Floor", v, f, grid_uv(n, n), WHITE, principled=dict(GLOSSY_FLOOR), face_albedo=floor_checker(n))
+    sphere = _sphere_part("MetalSphere", (0.17, -0.17, 0.165), 0.16, METAL_COLOUR, principled=dict(METAL_SPHERE))
+    return [floor] + parts[:-1] + [sphere, parts[-1]]     # the light stays last
+
+
 def _narrow_opening_parts():
     """Two 1 x 1 x 1 m rooms side by side along x, joined by a 0.2 x 0.3 m hatch."""
     t = 0.1            # wall / slab thickness
@@ -359,11 +441,13 @@ _BUILDERS = {
     "PLANE_UNDER_SKY": _plane_under_sky_parts,
     "PARALLEL_SQUARES": _parallel_squares_parts,
     "HEAVY": _heavy_parts,
+    "GLOSSY_BOX": _glossy_box_parts,
 }
 
 _CAMERAS = {
     "CORNELL_BOX": CameraView((0.0, -1.85, 0.5), (0.0, 0.0, 0.5), np.radians(39.3)),
     "HEAVY": CameraView((0.0, -1.85, 0.5), (0.0, 0.0, 0.5), np.radians(39.3)),
+    "GLOSSY_BOX": CameraView((0.0, -1.85, 0.5), (0.0, 0.0, 0.5), np.radians(39.3)),
     # Looking into room A through its (invisible from outside) front wall would hide everything:
     # the camera sits inside room A, in its front-left corner, looking at the hatch.
     "NARROW_OPENING": CameraView((-0.9, -0.42, 0.75), (0.0, 0.0, 0.4), np.radians(70.0)),
@@ -416,7 +500,8 @@ def parts_to_scene_arrays(parts, selected=None, world=(0.0, 0.0, 0.0)):
     if unknown:
         raise SceneError(f"No part named {', '.join(map(repr, unknown))} in this scene: "
                          f"its parts are {', '.join(names)}")
-    verts, tris, obj, albedo, emission, two_sided, uv = [], [], [], [], [], [], []
+    verts, tris, obj, albedo, emission, two_sided, uv, material = [], [], [], [], [], [], [], []
+    lobes, lobe_names = [], []
     offset = 0
     for i, p in enumerate(parts):
         t = p.triangles
@@ -424,7 +509,15 @@ def parts_to_scene_arrays(parts, selected=None, world=(0.0, 0.0, 0.0)):
         tris.append(t + offset)
         offset += len(p.vertices)
         obj.append(np.full(len(t), i, dtype=np.int32))
-        albedo.append(np.broadcast_to(p.albedo, (len(t), 3)))
+        albedo.append(p.triangle_albedo)
+        colours, face_colour = p.base_colours
+        index = np.full(len(colours), -1, np.int32)
+        for c, colour in enumerate(colours):
+            if p.lobes(colour):
+                index[c] = len(lobes)
+                lobes.append(p.lobes(colour))
+                lobe_names.append(f"{p.name} {c}")
+        material.append(np.repeat(index[face_colour], 2))
         emission.append(np.broadcast_to(p.emission, (len(t), 3)))
         two_sided.append(np.full(len(t), p.two_sided_emission))
         uv.append(p.uv)
@@ -440,6 +533,8 @@ def parts_to_scene_arrays(parts, selected=None, world=(0.0, 0.0, 0.0)):
         triangle_emission_two_sided=np.concatenate(two_sided),
         triangle_uv=np.concatenate(uv),
         object_has_uv=np.ones(len(parts), dtype=bool),
+        triangle_material=np.concatenate(material) if lobes else None,
+        materials=bsdf.MaterialTable.from_lobes(lobes, lobe_names) if lobes else None,
     )
 
 

@@ -374,15 +374,16 @@ class Lamps:
         w = np.where(front, self.area[lamp] * cos_l / np.where(t > 0, t, 1.0) ** 2 * atten, 0.0)
         return di, t, w
 
-    def next_event(self, points, normals, rng, caster, lift=None, geometric=None, transparency=None):
+    def next_event(self, points, normals, rng, caster, lift=None, geometric=None, transparency=None, bsdf=None):
         """``(values (k, 3) float32, shadow rays)``: the lamps' direct light D(y) = (1/π) ∫ L
         cos θ dω at surface points y (one sample of every lamp, light sampling alone: BSDF rays
         never hit lamps, no MIS). ``caster``, ``lift`` and ``geometric`` as
         :meth:`~lmdp_addon.lights.EmitterSampler.next_event`: shadow rays leave the points
         lifted along ``geometric`` (default ``normals``) by ``lift (k,)``, directions below the
         geometric surface give 0; ``transparency`` (:class:`~lmdp_addon.transparency.Transparency`
-        or None) lets shadow rays through cut-outs with ∏ (1 − alpha). No random numbers are
-        drawn without lamps."""
+        or None) lets shadow rays through cut-outs with ∏ (1 − alpha); at the points of ``bsdf``
+        (:class:`~lmdp_addon.bsdf.GlossyRows`, or None) the BSDF's f cos replaces cos θ / π. No
+        random numbers are drawn without lamps."""
         k = len(points)
         out = np.zeros((k, 3), np.float32)
         L = len(self.names)
@@ -412,6 +413,11 @@ class Lamps:
         seen = (passed.max(axis=1) if passed.ndim == 2 else passed) > 0
         ok, passed = ok[seen], passed[seen]
         value = self.emission[lamp[ok]] * (weight[ok] * cos[ok] * INV_PI)[:, None]
+        if bsdf is not None:     # glossy points: f cos of their BSDF (light sampling alone, no MIS)
+            g = np.flatnonzero(bsdf.mask[owner[ok]])
+            if len(g):
+                f_cos, _ = bsdf.eval_at(owner[ok[g]], d[ok[g]].astype(np.float32))
+                value[g] = self.emission[lamp[ok[g]]] * (weight[ok[g], None] * np.asarray(f_cos, np.float64))
         value = value * (passed if passed.ndim == 2 else passed[:, None])
         for ch in range(3):
             out[:, ch] = np.bincount(owner[ok], weights=value[:, ch], minlength=k)

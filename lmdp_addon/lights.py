@@ -156,7 +156,7 @@ class EmitterSampler:
         d_plane = dot3(o, n_l) - np.take(self.plane32, e)
         return np.take(self.longest2, e) > d_plane * d_plane
 
-    def next_event(self, points, normals, rng, caster, mis=True, lift=None, geometric=None):
+    def next_event(self, points, normals, rng, caster, mis=True, lift=None, geometric=None, bsdf=None):
         """``(values (k, 3) float32, shadow rays)``: the light-sampling half of the MIS estimate
         of D_e(y) = (1/π) ∫ L_e cos θ dω at surface points y (``mis=False``: the whole of D_e(y)
         by light sampling alone, weight ``q / p_L``; for paths that end at y).
@@ -178,6 +178,10 @@ class EmitterSampler:
         shading ``normals`` (smooth or custom normals): the origins are lifted along them, the
         cosine q stays the shading one, and directions below the geometric surface give 0 (the
         light the tracer's BSDF sampling absorbs there, see ``tracer``). None: ``normals``.
+        ``bsdf``: the glossy points' BSDF (:class:`~lmdp_addon.bsdf.GlossyRows`, None: every
+        point is Lambertian): at its ``mask`` points the value is ``L_e f cos / (p_L + p_bsdf)``
+        with the BSDF's f cos and sampling density instead of the cosine ones (MIS with the
+        density that samples their rays, :meth:`emission_hits` ``pdf_from``).
         """
         k = len(points)
         out = np.zeros((k, 3), np.float32)
@@ -230,6 +234,15 @@ class EmitterSampler:
         if passed is not None and passed.ndim == 1:
             weight = weight * passed
         out[vis] = rows(self.radiance32, ev) * weight[:, None]
+        if bsdf is not None:
+            g = np.flatnonzero(np.take(bsdf.mask, vis))
+            if len(g):
+                f_cos, p_bsdf = bsdf.eval_at(np.take(vis, g), rows(dl, np.take(vis, g)))
+                denom = np.take(p_light, g) + (p_bsdf if mis else 0.0)
+                value = rows(self.radiance32, np.take(ev, g)) * (f_cos / denom[:, None])
+                if passed is not None and passed.ndim == 1:
+                    value = value * np.take(passed, g)[:, None]
+                out[vis[g]] = value
         if passed is not None and passed.ndim == 2:    # tinted transparent surfaces on the way
             out[vis] *= passed
         return out, len(ok)
@@ -275,12 +288,14 @@ class EmitterSampler:
                                lift=lift, geometric=None if geometric is None
                                else np.ascontiguousarray(geometric, dtype=np.float32))
 
-    def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals):
+    def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals, pdf_from=None):
         """BSDF-sampling half of the MIS estimate for the rays ``hits (k,)`` of a wavefront (from
         a vertex y_k, k >= 1) that hit geometry: ``(lit, values)``, the rays among them that hit
         an emitter's emitting side and their ``L_e · q / (q + p_L)`` (k_lit, 3), to be multiplied
         by ``β w`` (``cos_from``: cos θ of the ray at the vertex it left; q = cos θ / π, see
-        :meth:`next_event`; ``face_normals (T, 3)`` float32 of the scene)."""
+        :meth:`next_event`; ``face_normals (T, 3)`` float32 of the scene). ``pdf_from`` (k,): the
+        density that sampled each ray where it is not the cosine one (glossy vertices; NaN:
+        cos θ / π), used as q."""
         none = np.zeros(0, dtype=np.int64), np.zeros((0, 3), np.float32)
         if self.n_triangles == 0:
             return none
@@ -301,4 +316,7 @@ class EmitterSampler:
                                                    - rows(o32, near).astype(np.float64)[:, None, :])
             p_light[near] = self.power_prob[e[near]] / np.maximum(omega, 1e-300)
         q = cos_from[ray] * INV_PI
+        if pdf_from is not None:
+            p = pdf_from[ray]
+            q = np.where(np.isnan(p), q, p).astype(q.dtype, copy=False)
         return ray, rows(self.triangle_emission32, t) * (q / (q + p_light))[:, None]

@@ -47,6 +47,10 @@ class SceneArrays:
                         Cycles sees them: smooth, flat, custom split normals, "Smooth by Angle"),
                         or None: every triangle is flat (its face normal). Corners that equal
                         the face normal (flat faces) are flat: :meth:`smooth_triangles`
+    triangle_material   (T,) int32 index into ``materials`` of each triangle's microfacet lobes
+                        (Principled specular / metallic, Glossy BSDF; -1: Lambertian), or None
+    materials           :class:`~lmdp_addon.bsdf.MaterialTable` of those lobes, or None: every
+                        surface is Lambertian (``triangle_albedo``)
     world_radiance      (3,) float32 radiance of a uniform world seen by escaping rays; with an
                         ``environment``, its mean radiance over the sphere
     environment         :class:`~lmdp_addon.world.EnvironmentMap` of a world that is not uniform
@@ -77,6 +81,8 @@ class SceneArrays:
     environment: object = None
     lamps: Lamps = None
     surface: object = None
+    triangle_material: np.ndarray = None
+    materials: object = None
     _held: dict = field(default=None, init=False, repr=False, compare=False)
     _hold_depth: int = field(default=0, init=False, repr=False, compare=False)
 
@@ -97,6 +103,8 @@ class SceneArrays:
             self.triangle_uv = np.ascontiguousarray(self.triangle_uv, dtype=np.float32).reshape(t, 3, 2)
         if self.corner_normals is not None:
             self.corner_normals = np.ascontiguousarray(self.corner_normals, dtype=np.float32).reshape(t, 3, 3)
+        if self.triangle_material is not None:
+            self.triangle_material = np.ascontiguousarray(self.triangle_material, dtype=np.int32).reshape(t)
         if self.object_has_uv is None:
             self.object_has_uv = np.zeros(len(self.object_names), dtype=bool)
             if self.triangle_uv is not None:
@@ -207,6 +215,17 @@ class SceneArrays:
             ok = np.all(np.isfinite(cn), axis=(1, 2)) & np.any(face != 0, axis=1)
             cos = np.einsum("tkj,tj->tk", cn, face)
         return ok & np.any(cos < 1.0 - 1e-6, axis=1)
+
+    def glossy_triangles(self):
+        """(T,) bool: triangles whose material has a microfacet lobe (``materials``)."""
+        if self.triangle_material is None or self.materials is None:
+            return np.zeros(self.n_triangles, dtype=bool)
+        glossy = np.append(self.materials.glossy, False)        # index -1: Lambertian
+        return glossy[np.where(self.triangle_material >= 0, self.triangle_material, -1)]
+
+    def has_glossy(self):
+        """True when some triangle has a microfacet lobe."""
+        return bool(np.any(self.glossy_triangles()))
 
     def has_smooth_normals(self):
         """True when some triangle shades with interpolated corner normals."""

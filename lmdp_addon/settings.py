@@ -3,7 +3,7 @@
 Operators copy ``scene.lmdp`` into a :class:`Settings` (``Settings.from_mapping``) and pass it to
 the engine; scripts and tests build one directly.
 """
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 COST_MODES = ("THESIS", "PHYSICAL")
 SOLVERS = ("POWER", "DIRECT", "ITERATIVE")
@@ -66,6 +66,10 @@ class Settings:
     max_resolution: int = 1024        #: DENSITY: largest lightmap side (pixels)
     power_of_two: bool = True         #: DENSITY: round each side up to a power of two
     atlas: bool = False               #: bake the objects into one shared lightmap image
+    # Glossy surfaces: bounces counted apart, as Cycles does (-1: no separate limit, N). Not user
+    # settings (no scene.lmdp property): LightPaths.apply sets them from the scene's Cycles Light Paths.
+    glossy_bounces: int = field(default=-1, metadata={"light_paths": True})  #: Cycles' Glossy bounces
+    total_bounces: int = field(default=-1, metadata={"light_paths": True})   #: Cycles' Max Bounces (any kind)
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
@@ -97,11 +101,11 @@ class LightPaths:
 
     ``SCENE``: the scene's Cycles Light Paths, as Cycles' own bake follows them. Cycles stops a
     path after the vertex whose bounce count reaches ``max_bounces`` or whose diffuse bounce count
-    reaches ``diffuse_bounces`` (``path_state_next``, both limits + 1 in the kernel); the engine
-    only makes diffuse bounces, so its path length is N = min(max_bounces, diffuse_bounces)
-    (measured against Cycles' bakes: docs/design.md). Glossy and transmission bounces never
-    occur in the engine, and Transparent surfaces absorb there, so ``glossy_bounces`` and
-    ``transparent_max_bounces`` are recorded only. ``clamp_indirect`` (Cycles'
+    reaches ``diffuse_bounces`` (``path_state_next``, both limits + 1 in the kernel); the engine's
+    path length is N = min(max_bounces, diffuse_bounces) (measured against Cycles' bakes:
+    docs/design.md); on glossy surfaces (``bsdf``) a path counts its glossy bounces apart as
+    Cycles does: at most ``glossy_bounces`` glossy, N diffuse and ``max_bounces`` in all
+    (``apply``). Transparent surfaces absorb, so ``transparent_max_bounces`` is recorded only. ``clamp_indirect`` (Cycles'
     ``sample_clamp_indirect``) is never applied: the engine's value is the unclamped one.
     ``CUSTOM``: N = ``Settings.max_bounces``.
     """
@@ -133,8 +137,14 @@ class LightPaths:
         return self.source == "SCENE" and self.clamp_indirect > 0
 
     def apply(self, settings):
-        """``settings`` with ``max_bounces`` = this path length."""
-        return replace(settings, max_bounces=self.path_length)
+        """``settings`` with ``max_bounces`` = this path length and, for SCENE, Cycles' Glossy and
+        Max bounces as ``glossy_bounces`` / ``total_bounces`` (paths through glossy surfaces
+        count their glossy bounces apart; CUSTOM: -1, no separate limits)."""
+        if self.source != "SCENE":
+            return replace(settings, max_bounces=self.path_length, glossy_bounces=-1, total_bounces=-1)
+        glossy = -1 if self.glossy_bounces is None else max(int(self.glossy_bounces), 0)
+        return replace(settings, max_bounces=self.path_length, glossy_bounces=glossy,
+                       total_bounces=max(int(self.max_bounces), self.path_length))
 
     def warnings(self):
         if not self.clamp_ignored:

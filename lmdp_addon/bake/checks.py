@@ -107,8 +107,8 @@ def bad_uv_faces(scene, index, resolution):
 
 
 def scene_fingerprint(scene):
-    """Hash of the geometry, shading normals, materials, world, lamps and object names of a
-    SceneArrays (not the selection).
+    """Hash of the geometry, shading normals, materials (with their microfacet lobes), world,
+    lamps and object names of a SceneArrays (not the selection).
 
     Shading normals count where they shade: the corner normals of the
     ``SceneArrays.smooth_triangles`` (the others shade with their face normal, exactly as
@@ -135,6 +135,12 @@ def scene_fingerprint(scene):
             h.update(np.ascontiguousarray(array).tobytes())
     if getattr(scene, "surface", None) is not None:
         h.update(b"\0surface\0" + scene.surface.fingerprint())
+    if scene.has_glossy():  # microfacet lobes (Lambertian scenes hash as before)
+        m = scene.materials
+        h.update(b"\0materials\0")
+        for array in (scene.triangle_material, m.kind, m.weight, m.alpha, m.eta, m.f0, m.b, m.multiscatter,
+                      m.layer, np.float64(m.filter_glossy)):
+            h.update(np.ascontiguousarray(array).tobytes())
     return h.hexdigest()
 
 
@@ -170,6 +176,13 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
                          "shader or Principled emission), a light (point, spot, sun or area), or a "
                          "non-black world")
     warnings = _check_solution(scene, names, settings, lmdp, will_solve)
+    if settings.bake_mode in ("GUIDED", "FINAL_GATHER") and scene.has_glossy():
+        warnings.append("Glossy surfaces (Principled specular / metallic, Glossy BSDF): the LMDP solution "
+                        "treats them as Lambertian surfaces of their BSDF's hemispherical albedo; "
+                        + ("Final Gather continues paths that hit them and reads the solution only at "
+                           "diffuse hits (its bias grows with what glossy surfaces reflect there)"
+                           if settings.bake_mode == "FINAL_GATHER" else
+                           "the guide is mixed with their BSDF there, so the bake stays unbiased"))
     if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
                         "the optimal policy is zero; a value below 1 keeps it unbiased")

@@ -267,7 +267,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
             caster = lmdp.dynamics.caster
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
                             guide_fraction=settings.guide_fraction, caster=caster, control=control,
-                            content=BakeContent.from_settings(settings))
+                            content=BakeContent.from_settings(settings),
+                            glossy_bounces=settings.glossy_bounces, total_bounces=settings.total_bounces)
     return tracer, guide, info
 
 

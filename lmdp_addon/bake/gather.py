@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import world as world_light
+from ..bsdf import lambertian_albedo, lambertian_albedo_at
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import cosine_directions
@@ -175,7 +176,7 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
     rng = np.random.default_rng([int(seed), 0xD1EC7])
     cell = np.arange(R)
     face_normals = scene.triangle_geometry()[0].astype(np.float32)
-    albedo = np.clip(scene.triangle_albedo, 0.0, 1.0).astype(np.float32)
+    albedo = np.clip(lambertian_albedo(scene), 0.0, 1.0)   # glossy: their hemispherical albedo
     reflects = (albedo.max(axis=1) > 0) & ~scene.is_emissive()
     corners = scene.corners()
     lifted = caster.lift(states.points, states.normals, states.point_triangle)
@@ -223,7 +224,7 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
                 environment, pos.astype(np.float32), ns.astype(np.float32), rng, caster,
                 caster.offset(t).astype(np.float32), geometric=ng.astype(np.float32) if smooth else None,
                 mis=False, transparency=lights.transparency)[0]
-        value = scene.albedo_at(t, bu[hit], bv[hit]) * direct
+        value = lambertian_albedo_at(scene, t, bu[hit], bv[hit]) * direct
         if tint is not None:
             value = value * tint[hit]
         for c in range(3):

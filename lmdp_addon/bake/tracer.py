@@ -44,6 +44,9 @@ and ends the path at its hit y_1 with the solution's ẑ_ind there (``gather.py`
 light at y_1 by light sampling; the hits the gather cannot serve continue as GUIDED paths.
 RESIDUAL traces UNGUIDED paths that also record the control variate g at their first hit
 (``residual.py``), and its control samples stop there (``first_hit_only``).
+At vertices on glossy surfaces (``SceneArrays.materials``) the BSDF of ``bsdf.VertexBSDF`` is
+sampled instead (GUIDED: mixed with the guide), with its f cos and density in next-event
+estimation and MIS, Cycles' Filter Glossy and its separate glossy bounce limit (docs/design.md).
 
 Arrays are float32 in the hot loop (positions keep ~1e-7 relative precision). Hit points are
 rebuilt from the hit's barycentrics on the hit triangle, so they lie on its plane to the
@@ -56,6 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import world as world_light
+from ..bsdf import GlossyRows, VertexBSDF
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
@@ -64,6 +68,7 @@ from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
+INV_PI = 1.0 / np.pi
 
 
 @dataclass
@@ -77,6 +82,7 @@ class TraceStats:
     guided_vertices: int = 0  #: vertices that had a compatible state (GUIDED / FINAL_GATHER)
     gathered: int = 0         #: FINAL_GATHER paths ended by the solution at y_1
     gather_fallback: int = 0  #: FINAL_GATHER paths continued by path tracing (no state near y_1)
+    glossy_vertices: int = 0  #: vertices on surfaces with microfacet lobes (BSDF sampling)
 
     def add(self, other):
         for name in self.__dataclass_fields__:
@@ -106,10 +112,14 @@ class IndirectTracer:
                     record the control variate g at their first hit, ``trace(control_out=...)``)
     content         :class:`~lmdp_addon.bake.content.BakeContent`: also the direct light at the
                     start point, and / or times its diffuse colour (default: indirect only)
+    glossy_bounces, total_bounces  on glossy scenes, Cycles' Glossy and Max bounces: a path keeps
+                    at most ``max_bounces`` diffuse, ``glossy_bounces`` glossy and
+                    ``total_bounces`` bounces in all (-1: no separate limit, ``max_bounces``)
     """
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
-                 guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None):
+                 guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None,
+                 glossy_bounces=-1, total_bounces=-1):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -158,6 +168,18 @@ class IndirectTracer:
         #: vertex samples the world with a shadow ray (``world.py``); None: the uniform world.
         self.environment = scene.environment if getattr(scene, "environment", None) is not None \
             and scene.environment.lit else None
+        #: Glossy surfaces (``SceneArrays.materials``): their vertices sample and evaluate the
+        #: BSDF (``bsdf.VertexBSDF``); None: every surface is Lambertian (traced as before).
+        self.glossy = scene.glossy_triangles() if scene.has_glossy() else None
+        #: Cycles' Filter Glossy of the captured scene (``MaterialTable.filter_glossy``; 0: off):
+        #: glossy lobes at a vertex get α ≥ 0.5 √(1 - p_min / filter), p_min the smallest density
+        #: of the path's sampled rays so far (Cycles' ``surface_shader_prepare_closures``).
+        self.filter_glossy = float(scene.materials.filter_glossy) if self.glossy is not None else 0.0
+        #: Bounce limits of glossy scenes (Cycles' path_state_next): diffuse N, glossy, total.
+        self.total_limit = max(int(total_bounces), self.max_bounces) if total_bounces >= 0 else self.max_bounces
+        self.glossy_limit = int(glossy_bounces) if glossy_bounces >= 0 else self.total_limit
+        if self.glossy is None:
+            self.total_limit = self.max_bounces
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None, control_out=None,
@@ -203,7 +225,11 @@ class IndirectTracer:
             L += self._next_events(pos, nrm, gnrm, lift, rng, stats)
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
+        # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
+        p_min = (np.maximum(cos_prev, 0.0) * INV_PI).astype(np.float32) if self.filter_glossy > 0 else None
+        n_glossy = np.zeros(len(idx), np.int16) if self.glossy is not None else None   # glossy bounces
         bounce = 1
+        q_prev = None
         while len(idx):
             # ---- closest hits y_bounce of the sampled directions ----
             origin = pos + lift[:, None] * gnrm
@@ -217,13 +243,23 @@ class IndirectTracer:
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2 or self.content.direct:
-                self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h)
-            if bounce > self.max_bounces:
+                self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev)
+            if bounce > self.total_limit:
                 break
+            if n_glossy is not None:   # Cycles' diffuse and glossy limits (the texel's bounce is diffuse)
+                within = ((bounce - n_glossy) <= self.max_bounces) & (n_glossy <= self.glossy_limit)
+                h = h[within[h]]
             # ---- the vertex y_bounce: β_k = β_{k-1} w_{k-1} ρ(y_k) ----
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
-            pos, nrm, gnrm, front, beta = self._vertices(d, tri, bu, bv, w, beta)
+            p_min, n_glossy = _take(p_min, h), _take(n_glossy, h)
+            pos, nrm, gnrm, front, beta_hit = self._vertices(d, tri, bu, bv, w, beta)
+            glossy = None if self.glossy is None else np.flatnonzero(self.glossy[tri])
+            if glossy is not None and len(glossy):
+                # β_k = β_{k-1} w_{k-1}: the BSDF's weight f cos / p joins when ω_k is sampled
+                beta_hit[glossy] = rows(beta, glossy) * rows(w, glossy)[:, None]
+            beta = beta_hit
+            wi = -d
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
             objs = self.objects[tri]
@@ -233,21 +269,24 @@ class IndirectTracer:
             if bounce == 1 and self.gather is not None:
                 live = self._final_gather(L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs,
                                           rng, stats)
-                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
-                    live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
+                    live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
+                p_min, n_glossy = _take(p_min, live), _take(n_glossy, live)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
-                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs = _select_rows(
-                    np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
+                    np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
+                p_min, n_glossy = _take(p_min, np.flatnonzero(alive)), _take(n_glossy, np.flatnonzero(alive))
                 z_ind = z_ind[alive] if z_ind is not None else None
             if len(idx) == 0:
                 break
             vstates = np.full(len(idx), -1, dtype=np.int64)
+            glossy_rows = self._glossy_rows(tri, bu, bv, nrm, gnrm, wi, stats, p_min)
             if self.guide is not None:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
-            direct = self._next_events(pos, nrm, gnrm, lift, rng, stats)
+            direct = self._next_events(pos, nrm, gnrm, lift, rng, stats, glossy_rows)
             L[idx] += beta * direct
             if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
                 control_out[idx] = beta * (direct + z_ind)
@@ -259,16 +298,36 @@ class IndirectTracer:
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
                 idx, pos, nrm, gnrm, lift, vstates = _select_rows(survive, idx, pos, nrm, gnrm, lift, vstates)
+                p_min, n_glossy = _take(p_min, survive), _take(n_glossy, survive)
+                if glossy_rows is not None:
+                    glossy_rows = glossy_rows.select(survive)
                 if len(idx) == 0:
                     break
             # ---- the next direction ω_bounce ----
             u = rng.random((len(idx), 3))
+            glossy_states = None
+            if glossy_rows is not None and self.guide is not None:
+                glossy_states = vstates
+                vstates = np.where(glossy_rows.mask, -1, vstates)   # the guide mixes with the BSDF there
             d, w, cos_prev = self.directions.sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
             w = self._above_geometry(w, gnrm, d)
+            q_prev = None
+            if glossy_rows is not None:
+                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta, glossy_states)
+                n_glossy = n_glossy + lobe
+            if p_min is not None:
+                p_ray = np.maximum(cos_prev, 0.0) * INV_PI
+                if q_prev is not None:
+                    p_ray = np.where(np.isnan(q_prev), p_ray, q_prev)
+                p_min = np.minimum(p_min, p_ray).astype(np.float32)
             keep = w > 0
             if not np.all(keep):
+                keep = np.flatnonzero(keep)
                 idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
-                    np.flatnonzero(keep), idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
+                    keep, idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
+                if q_prev is not None:
+                    q_prev = np.take(q_prev, keep)
+                p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
             bounce += 1
         if self.zero_colour and triangles is not None:
             L = _even_colour(L, colour0)
@@ -293,22 +352,26 @@ class IndirectTracer:
             colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
         return colour
 
-    def _next_events(self, pos, nrm, gnrm, lift, rng, stats):
+    def _next_events(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None):
         """The light-sampling half of the direct light D(y) (k, 3) at the points ``pos`` (shading
         normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``): the emitters' MIS estimate
         (``lights``), Blender's lights by light sampling alone (``lamps``) and the environment
-        map's MIS estimate (``world``), in that order of random numbers."""
+        map's MIS estimate (``world``), in that order of random numbers; rows of ``glossy_rows``
+        (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density."""
         geometric = gnrm if self.smooth else None
-        direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric)
+        direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric,
+                                                     bsdf=glossy_rows)
         stats.shadow_rays += shadow_rays
         if not self.lamps.empty:
             lamp_direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
-                                                             geometric=geometric, transparency=self.transparency)
+                                                             geometric=geometric, transparency=self.transparency,
+                                                             bsdf=glossy_rows)
             stats.shadow_rays += shadow_rays
             direct = direct + lamp_direct
         if self.environment is not None:
             world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
-                                                               geometric=geometric, transparency=self.transparency)
+                                                               geometric=geometric, transparency=self.transparency,
+                                                               bsdf=glossy_rows)
             stats.shadow_rays += shadow_rays
             direct = direct + world_direct
         return direct
@@ -359,19 +422,22 @@ class IndirectTracer:
         albedo = self.scene.albedo_at(tri, bu, bv) if self.textured else rows(self.albedo, tri)
         return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
 
-    def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h):
+    def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k >= 2): the world
         through the rays that escape, the emitters through the rays ``h`` that hit geometry
-        (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays."""
+        (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays; ``q_prev``: the
+        BSDF density of rays sampled at glossy vertices (NaN elsewhere), or None."""
         if self.environment is not None and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
-            L[idx[miss]] += rows(bw, miss) * world_light.escape_weight(self.environment, rows(d, miss),
-                                                                       np.take(cos_prev, miss))
+            L[idx[miss]] += rows(bw, miss) * world_light.escape_weight(
+                self.environment, rows(d, miss), np.take(cos_prev, miss),
+                pdf_from=None if q_prev is None else np.take(q_prev, miss))
         elif self.world_lit and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
             L[idx[miss]] += rows(bw, miss) * self.world
         if len(h):
-            lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals)
+            lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals,
+                                                   pdf_from=q_prev)
             L[idx[lit]] += rows(bw, lit) * value
 
     def _final_gather(self, L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats):
@@ -381,6 +447,8 @@ class IndirectTracer:
         ``nrm`` / ``gnrm``: the shading and geometric normals of the hit side."""
         value = self.gather.value_at(tri, bu, bv, pos, gnrm, front, objs)
         done = ~np.isnan(value[:, 0]) & ~self.gather.too_close(dist, objs)
+        if self.glossy is not None:   # ẑ is Lambertian radiance: glossy hits go on as paths
+            done &= ~self.glossy[tri]
         g = np.flatnonzero(done)
         direct, shadow_rays = self.lights.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster,
                                                        lift=np.take(lift, g),
@@ -403,6 +471,90 @@ class IndirectTracer:
         stats.gathered += int(done.sum())
         stats.gather_fallback += int((~done).sum())
         return np.flatnonzero(~done)
+
+
+    def _guided_glossy(self, vertex, u, states):
+        """GUIDED at glossy vertices (:meth:`_sample_glossy`): ``(wo, f cos / p, q, lobe kind)``
+        with p = α g_s + (1 - α) p_bsdf at rows with a state (exact; a mirror lobe's sample
+        keeps its delta weight / (1 - α)) and the BSDF alone elsewhere; q is the BSDF density."""
+        alpha = self.guide_fraction
+        has = states >= 0
+        guided = has & (u[:, 2] < alpha)
+        ub = np.array(u, dtype=np.float64)
+        rescale = has & ~guided
+        ub[rescale, 2] = (ub[rescale, 2] - alpha) / max(1.0 - alpha, 1e-12)
+        wo, weight, pdf, kind = vertex.sample(ub, return_lobe=True)
+        gi = np.flatnonzero(guided)
+        if len(gi):
+            wo[gi] = self.guide.sample(states[gi], ub[gi, :2], first=False)
+            kind[gi] = 0          # a guided bounce counts as diffuse
+        mix = np.flatnonzero(has & (kind < 2))
+        if len(mix):
+            f, p_bsdf = vertex.eval(wo[mix], mix)
+            g_s = self.guide.density(states[mix], wo[mix].astype(np.float32), first=False)
+            p_mix = alpha * g_s + (1.0 - alpha) * p_bsdf
+            above = np.sum(vertex.ng[mix] * wo[mix], axis=1) > 0
+            ok = above & (p_mix > 0) & (np.isin(mix, gi) | (pdf[mix] > 0))
+            weight[mix] = np.where(ok[:, None], f / np.where(p_mix > 0, p_mix, 1.0)[:, None], 0.0)
+            pdf[mix] = np.where(ok, np.maximum(p_bsdf, 1e-30), 0.0)
+        mirror = np.flatnonzero(has & (kind == 2))
+        if len(mirror):
+            weight[mirror] /= max(1.0 - alpha, 1e-12)
+        return wo, weight, pdf, kind
+
+    # ---- glossy vertices ----------------------------------------------------------------------------
+    def _glossy_rows(self, tri, bu, bv, nrm, gnrm, wi, stats, p_min=None):
+        """The :class:`~lmdp_addon.bsdf.GlossyRows` of the vertices on glossy triangles ``tri`` at
+        barycentrics ``(bu, bv)`` (their BSDF set up for the view directions ``wi`` with the
+        diffuse colour at the hit, blurred by Filter Glossy from the paths' smallest ray
+        densities ``p_min``), or None when there are none."""
+        if self.glossy is None:
+            return None
+        g = np.flatnonzero(self.glossy[tri])
+        if len(g) == 0:
+            return None
+        stats.glossy_vertices += len(g)
+        t = np.take(tri, g)
+        blur = None
+        if p_min is not None:
+            blur_pdf = np.take(p_min, g).astype(np.float64) / self.filter_glossy
+            blur = np.where(blur_pdf < 1.0, np.sqrt(np.maximum(1.0 - blur_pdf, 0.0)) * 0.5, 0.0)
+        albedo = (self.scene.albedo_at(t, np.take(bu, g), np.take(bv, g)) if self.textured
+                  else rows(self.albedo, t))
+        vertex = VertexBSDF(self.scene.materials, np.take(self.scene.triangle_material, t), albedo,
+                            rows(nrm, g), rows(wi, g), geometric=rows(gnrm, g), blur=blur)
+        return GlossyRows(len(tri), g, vertex)
+
+    def _sample_glossy(self, glossy_rows, u, d, w, beta, states=None):
+        """Directions of the glossy rows drawn from their BSDF (``u``: their uniforms), or in
+        GUIDED mode at rows with a state (``states`` of the wavefront, -1: none) from the
+        one-sample mixture ``α g_s + (1 - α) p_bsdf`` (u[:, 2] < α picks the guide, else it is
+        rescaled to pick the lobe): the weight ``f cos / p`` joins β (w = 1, 0 when absorbed);
+        returns ``(d, w, beta, q, lobe)`` with q (k,) float32 the BSDF density of those rays (NaN
+        on the other rows; the MIS partition of unity, as next-event estimation uses it) and
+        lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce)."""
+        g = np.flatnonzero(glossy_rows.mask)
+        if states is not None and np.any(np.take(states, g) >= 0):
+            wo, weight, pdf, kind = self._guided_glossy(glossy_rows.bsdf, rows(u, g), np.take(states, g))
+        else:
+            wo, weight, pdf, kind = glossy_rows.bsdf.sample(rows(u, g), return_lobe=True)
+        microfacet = kind > 0
+        d = d.copy()
+        d[g] = wo
+        w = w.copy()
+        w[g] = np.where((pdf > 0) & (weight.max(axis=1) > 0), 1.0, 0.0)
+        beta = beta.copy()
+        beta[g] = rows(beta, g) * weight
+        q = np.full(len(d), np.nan, np.float32)
+        q[g] = pdf
+        lobe = np.zeros(len(d), np.int16)
+        lobe[g] = microfacet
+        return d, w, beta, q, lobe
+
+
+def _take(a, index):
+    """``a[index]``, or None for None (optional per-path arrays)."""
+    return None if a is None else np.take(a, index)
 
 
 def _even_colour(L, colour):

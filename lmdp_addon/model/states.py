@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..bsdf import lambertian_albedo_at
 from ..errors import SceneError
 from .hemisphere import stratum_cosine_weights, stratum_solid_angle, tangent_frame
 
@@ -23,7 +24,8 @@ class StateSpace:
     frames          (m, 3, 3) float64 tangent frames (rows t, b, n), see hemisphere.tangent_frame
     point_triangle  (m,) int64 triangle each point lies on
     point_object    (m,) int32 object index (SceneArrays.object_names)
-    point_albedo    (m, 3) float32 diffuse reflectance at the point
+    point_albedo    (m, 3) float32 diffuse reflectance at the point (textured; on glossy surfaces the
+                    hemispherical albedo of their BSDF, ``bsdf.lambertian_albedo_at``)
     point_area      (m,) float64 surface area each point stands for (m^2)
     strata_u, strata_v  hemisphere grid; S = strata_u * strata_v strata per point
     stratum_weight  (S,) float64 ∫_k cos θ dω / π, the Lambertian mass of each stratum
@@ -137,7 +139,7 @@ def _sample(scene, point_count, strata_u, strata_v, seed):
         frames=tangent_frame(point_normals),
         point_triangle=tri.astype(np.int64),
         point_object=obj.astype(np.int32),
-        point_albedo=scene.albedo_at(tri, bary[:, 1], bary[:, 2]).astype(np.float32),
+        point_albedo=lambertian_albedo_at(scene, tri, bary[:, 1], bary[:, 2]),   # glossy: the BSDF's hemispherical albedo
         point_area=point_area,
         strata_u=int(strata_u),
         strata_v=int(strata_v),

@@ -24,6 +24,7 @@ SCENE_LABELS = {
     "PLANE_UNDER_SKY": "Plane Under Sky",
     "PARALLEL_SQUARES": "Parallel Squares",
     "HEAVY": "Heavy Cornell Box",
+    "GLOSSY_BOX": "Glossy Cornell Box",
 }
 #: Name of the UV map every demo mesh gets.
 UV_MAP_NAME = "UVMap"
@@ -40,6 +41,33 @@ def _split_strength(radiance):
     if strength <= 0.0:
         return (0.0, 0.0, 0.0), 0.0
     return tuple(float(c) for c in radiance / strength), strength
+
+
+def _materials(part):
+    """The node materials of ``part``, one per distinct face colour (:attr:`Part.base_colours`)."""
+    if part.principled is None:
+        return [_material(part)]
+    colours, _ = part.base_colours
+    return [_principled_material(part, colour, i) for i, colour in enumerate(colours)]
+
+
+def _principled_material(part, colour, index):
+    """A Principled BSDF material of Base Color ``colour`` with the part's Principled inputs."""
+    mat = bpy.data.materials.new(f"LMDP {part.name}" + (f" {index}" if index else ""))
+    tree = mat.node_tree
+    tree.nodes.clear()
+    output = tree.nodes.new("ShaderNodeOutputMaterial")
+    output.location = (300, 0)
+    shader = tree.nodes.new("ShaderNodeBsdfPrincipled")
+    shader.inputs["Base Color"].default_value = (*(float(c) for c in colour), 1.0)
+    p = part.principled
+    shader.inputs["Metallic"].default_value = p.get("metallic", 0.0)
+    shader.inputs["Roughness"].default_value = p.get("roughness", 0.5)
+    shader.inputs["IOR"].default_value = p.get("ior", 1.5)
+    shader.inputs["Specular IOR Level"].default_value = p.get("ior_level", 0.5)
+    mat.diffuse_color = (*(float(c) for c in colour), 1.0)
+    tree.links.new(shader.outputs[0], output.inputs["Surface"])
+    return mat
 
 
 def _material(part):
@@ -70,6 +98,8 @@ def part_mesh(part, name=None):
     mesh.from_pydata(part.vertices.tolist(), [], part.faces.tolist())
     uv_layer = mesh.uv_layers.new(name=UV_MAP_NAME)
     uv_layer.data.foreach_set("uv", part.face_uv.astype(np.float32).ravel())
+    if part.face_albedo is not None:   # one material slot per face colour (a checker)
+        mesh.polygons.foreach_set("material_index", part.base_colours[1].astype(np.int32))
     mesh.update()
     return mesh
 
@@ -120,6 +150,8 @@ def configure_cycles(scene, samples=RENDER_SAMPLES):
     cycles.max_bounces = MAX_BOUNCES
     cycles.diffuse_bounces = MAX_BOUNCES
     cycles.sample_clamp_indirect = 0.0     # unclamped: Cycles' bakes and the add-on's are the same quantity
+    cycles.glossy_bounces = MAX_BOUNCES    # glossy surfaces (GLOSSY_BOX): the engine's path length,
+    cycles.blur_glossy = 0.0               # Filter Glossy off: the BSDFs unblurred (bsdf_params)
     scene.view_settings.view_transform = 'Standard'
     scene.view_settings.look = 'None'
     scene.view_settings.exposure = 0.0
@@ -146,7 +178,8 @@ def build_demo_scene(kind, context):
     carriers = []
     for part in parts:
         mesh = part_mesh(part)
-        mesh.materials.append(_material(part))
+        for material in _materials(part):
+            mesh.materials.append(material)
         obj = bpy.data.objects.new(part.name, mesh)
         collection.objects.link(obj)
         if not part.is_emitter:

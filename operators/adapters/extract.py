@@ -40,10 +40,12 @@ import bpy
 import numpy as np
 
 from ...lmdp_addon import textures
+from ...lmdp_addon.bsdf import MaterialTable
 from ...lmdp_addon.lamps import AREA, POINT, SPOT, SUN, Lamps
 from ...lmdp_addon.scene_arrays import SceneArrays
 from ..common import mode_holding_mesh, skipped_mesh_messages
 from . import shading
+from .bsdf_params import cycles_glossy_settings, material_lobes
 from .lightmap_uvs import chosen_uv_name
 from .materials import NODE_MULTIPLY, slot_materials
 from .world_capture import WorldReader
@@ -206,10 +208,9 @@ class _MaterialReader:
             base = self.colour(node, "Base Color", owner)
             metallic = self.value(node, "Metallic", owner)
             transmission = self.value(node, "Transmission Weight", owner)
-            if metallic > 0 or transmission > 0:
-                self.warn(f"{owner}: Principled BSDF '{node.name}' has Metallic {metallic:g} / "
-                          f"Transmission {transmission:g}; LMDP keeps only its diffuse part "
-                          "(albedo = Base Color x (1 - Metallic) x (1 - Transmission))")
+            if transmission > 0:   # metallic and specular: bsdf_params' microfacet lobes
+                self.warn(f"{owner}: Principled BSDF '{node.name}' has Transmission {transmission:g}; "
+                          "LMDP keeps its diffuse, specular and metallic parts (no transmission)")
             albedo = base * (1.0 - metallic) * (1.0 - transmission)
             strength = self.value(node, "Emission Strength", owner)
             emission = self.colour(node, "Emission Color", owner) * strength if strength else _BLACK
@@ -230,6 +231,8 @@ class _MaterialReader:
             self.warn(f"{owner}: Add Shader '{node.name}' is approximated by the sum of its inputs"
                       + (" (albedo clipped to 1)" if np.any(albedo > 1) else ""))
             return np.minimum(albedo, 1.0), e1 + e2
+        if t == 'BSDF_GLOSSY':   # no diffuse part: its reflection is a microfacet lobe (bsdf_params)
+            return _BLACK, _BLACK
         if t in ('BSDF_TRANSPARENT', 'HOLDOUT', 'BSDF_REFRACTION'):
             self.warn(f"{owner}: '{node.name}' ({node.bl_label}) cannot be modelled; the surface "
                       "is treated as black (absorbing)")
@@ -457,6 +460,8 @@ class _SceneBuilder:
         self.normals = []  # (T, 3, 3) corner normals per object (NaN: the face normal)
         self.surfaces = []  # (material (T,), {uv index: (T, 3, 2)}, {attribute index: (T, 3, 4)})
         self.materials, self._material_index = [], {}
+        self.lobe_of = []  # (T,) index into self.lobes per object (-1: Lambertian)
+        self.lobes, self.lobe_names, self._lobe_index = [], [], {}
         self.offset = 0
         self.lamps = []   # point, spot and sun lights (``_lamp_record``)
 
@@ -467,14 +472,26 @@ class _SceneBuilder:
             self.materials.append(shading)
         return self._material_index[key]
 
+    def lobe_index(self, key, name, lobes):
+        """Index of the microfacet lobes ``lobes`` of material ``key`` in the scene's
+        ``MaterialTable`` (-1: none, a Lambertian material)."""
+        if not lobes:
+            return -1
+        if key not in self._lobe_index:
+            self._lobe_index[key] = len(self.lobes)
+            self.lobes.append(lobes)
+            self.lobe_names.append(name)
+        return self._lobe_index[key]
+
     def add(self, name, carries_states, world, tris, albedo, emission, two_sided, uv,
-            uid=-1, fingerprint=None, corner_normals=None, surface=None):
+            uid=-1, fingerprint=None, corner_normals=None, surface=None, lobes=None):
         """One object: world vertices (V, 3), triangles (T, 3) into them, per-triangle albedo /
         emission (T, 3) and two-sidedness (T,), UVs (T, 3, 2) or None; the ``session_uid`` and
         :func:`object_fingerprint` of its Blender object (see :class:`CapturedScene`); its
         corner normals (T, 3, 3) world space, or None (flat: the face normals); ``surface``:
         ``(material (T,) int32, {uv map: (T, 3, 2)}, {attribute: (T, 3, 4)})`` of its textured
-        materials (:meth:`material_index`; -1: constant), or None."""
+        materials (:meth:`material_index`; -1: constant), or None; ``lobes`` (T,) its
+        triangles' :meth:`lobe_index` (None: Lambertian)."""
         self.names.append(name)
         self.uids.append(uid)
         self.fingerprints.append(fingerprint)
@@ -487,6 +504,8 @@ class _SceneBuilder:
                             else np.full((len(tris), 3, 3), np.nan, np.float32))
         self.surfaces.append(surface if surface is not None
                              else (np.full(len(tris), -1, np.int32), {}, {}))
+        self.lobe_of.append(np.full(len(tris), -1, np.int32) if lobes is None
+                            else np.asarray(lobes, np.int32))
         self.offset += len(world)
 
     def surface(self, reader, transparent_max_bounces):
@@ -529,6 +548,7 @@ class _SceneBuilder:
                 tris = np.flatnonzero(surface._flags[which][surface.triangle_material])
                 if len(tris):
                     target[tris] = surface.triangle_means(which, tris, albedo)
+        materials = MaterialTable.from_lobes(self.lobes, self.lobe_names) if self.lobes else None
         return CapturedScene(
             vertices=vertices,
             triangles=triangles,
@@ -542,6 +562,8 @@ class _SceneBuilder:
             triangle_emission_two_sided=two_sided,
             triangle_uv=triangle_uv,
             corner_normals=corner_normals,
+            triangle_material=np.concatenate(self.lobe_of) if materials is not None else None,
+            materials=materials,
             object_has_uv=np.array(self.has_uv, dtype=bool),
             warnings=warnings,
             object_uids=np.array(self.uids, dtype=np.int64),
@@ -602,14 +624,17 @@ def _shadow_flag_warning(name, obj, warnings):
 
 
 def _add_mesh(builder, name, inst, fingerprint, reader, warnings, uv_choice=("", None),
-              colour_bakes=None):
+              colour_bakes=None, lobe_reader=None):
     """The evaluated mesh of ``inst`` in world space, with its materials and lightmap UV map
     (``uv_choice``: (``scene.lmdp.lightmap_uv_map``, {object name: UV map} that overrides it));
     returns False when it has no faces. ``fingerprint``: the object's :func:`object_fingerprint`
     when it carries states, else None. Objects in Edit Mode are read from their edit mesh
-    (``to_mesh``): the evaluated mesh of an object in Edit Mode holds no faces of its own."""
+    (``to_mesh``): the evaluated mesh of an object in Edit Mode holds no faces of its own.
+    ``lobe_reader``: the :class:`_MaterialReader` that reads the materials' microfacet lobes
+    (``bsdf_params.material_lobes``)."""
     carries_states = fingerprint is not None
     colour_bakes = colour_bakes or {}
+    lobe_reader = lobe_reader if lobe_reader is not None else _MaterialReader(warnings)
     obj = inst.object
     original = obj.original
     editing = original.type == 'MESH' and original.data.is_editmode
@@ -640,10 +665,13 @@ def _add_mesh(builder, name, inst, fingerprint, reader, warnings, uv_choice=("",
         emission_table = np.array([e if isinstance(e, np.ndarray) else np.zeros(3) for _, e, _ in per_slot])
         surface = _mesh_surface(builder, reader, name, mesh, loops, tris_vertices(mesh, poly, loops),
                                 slots, per_slot, slot_of_tri, fallback=colour_bakes.get(original.session_uid))
+        glossy = np.array([builder.lobe_index(m.name_full if m is not None else None,
+                                              m.name if m is not None else "", material_lobes(lobe_reader, m))
+                           for m in slots] or [-1], dtype=np.int32)
         builder.add(name, carries_states, world, tris, albedo_table[slot_of_tri],
                     emission_table[slot_of_tri], np.ones(len(tris), dtype=bool), uv,
                     -1 if inst.is_instance else original.session_uid, None if inst.is_instance else fingerprint,
-                    corner_normals=corner_normals, surface=surface)
+                    corner_normals=corner_normals, surface=surface, lobes=glossy[slot_of_tri])
         return True
     finally:
         if own_mesh:
@@ -793,7 +821,7 @@ def extract_scene(context, selected_objects, depsgraph=None, uv_maps=None):
         elif obj.type in GEOMETRY_TYPES:
             _shadow_flag_warning(name, obj, warnings)
             if _add_mesh(builder, name, inst, fingerprints.get(top.session_uid), reader, warnings, uv_choice,
-                         colour_bakes):
+                         colour_bakes, world_reader):
                 captured.add(top.session_uid)
             if not inst.is_instance and mode_holding_mesh(obj.original) == "Sculpt Mode with Dynamic Topology":
                 warnings.append(f"Object '{name}' is in Sculpt Mode with Dynamic Topology, whose strokes "
@@ -809,4 +837,6 @@ def extract_scene(context, selected_objects, depsgraph=None, uv_maps=None):
     cycles = getattr(depsgraph.scene, "cycles", None)
     surface = builder.surface(reader, getattr(cycles, "transparent_max_bounces", 8))
     world_radiance, environment = world_reader.world(depsgraph.scene.world)
-    return builder.scene_arrays(world_radiance, warnings, environment, surface)
+    arrays = builder.scene_arrays(world_radiance, warnings, environment, surface)
+    arrays.warnings.extend(cycles_glossy_settings(depsgraph.scene, arrays))
+    return arrays

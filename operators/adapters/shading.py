@@ -352,6 +352,8 @@ class ShadingReader:
             return D, tx.total(a[1], b[1]), tx.total(a[2], b[2])
         if t == 'BSDF_TRANSPARENT':
             return _BLACK3, _BLACK3, self.colour(node.inputs["Color"], stack)
+        if t == 'BSDF_GLOSSY':   # no diffuse part: its reflection is a microfacet lobe (bsdf_params)
+            return _BLACK3, _BLACK3, _ZERO
         if t in ('HOLDOUT', 'BSDF_REFRACTION'):
             self.warn(f"'{node.name}' ({node.bl_label}) cannot be modelled; the surface is treated as "
                       "black (absorbing)")
@@ -371,10 +373,9 @@ class ShadingReader:
         base = self.colour(node.inputs["Base Color"], stack)
         metallic = self.constant_value(node, "Metallic", stack)
         transmission = self.constant_value(node, "Transmission Weight", stack)
-        if metallic > 0 or transmission > 0:
-            self.warn(f"Principled BSDF '{node.name}' has Metallic {metallic:g} / Transmission "
-                      f"{transmission:g}; LMDP keeps only its diffuse part (albedo = Base Color x "
-                      "(1 - Metallic) x (1 - Transmission))")
+        if transmission > 0:   # metallic and specular: bsdf_params' microfacet lobes
+            self.warn(f"Principled BSDF '{node.name}' has Transmission {transmission:g}; LMDP keeps "
+                      "its diffuse, specular and metallic parts (no transmission)")
         D = tx.product(base, tx.Const([(1.0 - metallic) * (1.0 - transmission)])) \
             if (metallic or transmission) else base
         strength = self.value(node.inputs["Emission Strength"], stack)

@@ -12,6 +12,7 @@ _DESCRIPTIONS = {
     "PLANE_UNDER_SKY": "A diffuse plane under a uniform sky (analytic answer: albedo x sky radiance)",
     "PARALLEL_SQUARES": "A plane under a parallel square emitter (analytic form factor)",
     "HEAVY": "The Cornell box with bumpy, finely subdivided surfaces (about 250k triangles)",
+    "GLOSSY_BOX": "The Cornell box with a glossy checkered floor and a metallic sphere (Principled BSDFs)",
 }
 
 

@@ -311,7 +311,13 @@ def test_principled_emission_mix_and_add_shaders(fresh_scene, extract):
     np.testing.assert_allclose(get["Glow"][0], 0.5, rtol=1e-6)
     np.testing.assert_allclose(get["Glow"][1], (4.0, 2.0, 1.0), rtol=1e-6)
     assert sa.triangle_emission_two_sided.all()
-    assert any("Metal" in w and "Metallic" in w for w in sa.warnings)
+    # Metallic is modelled (issue 18, item 3): a conductor lobe of weight 0.75 over the specular
+    # layer's 0.25, no warning
+    assert not any("Metallic" in w for w in sa.warnings)
+    metal = sa.materials.names.index("Metal")
+    assert sa.triangle_material[sa.triangle_object == sa.object_names.index("Metal")][0] == metal
+    np.testing.assert_allclose(sa.materials.weight[metal, :2, 0], (0.75, 0.25))
+    assert tuple(sa.materials.kind[metal, :2]) == (2, 1)   # CONDUCTOR, DIELECTRIC
     # Mixing and adding diffuse and emission closures is exact: no warning.
     assert not any("'Half Half'" in w or "Add Shader" in w for w in sa.warnings)
 

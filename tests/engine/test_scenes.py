@@ -64,7 +64,7 @@ def test_every_scene_builds_consistent_scene_arrays(kind):
     # Per triangle data follows the parts.
     for i, p in enumerate(parts):
         sel = sa.triangle_object == i
-        np.testing.assert_allclose(sa.triangle_albedo[sel], np.broadcast_to(p.albedo, (sel.sum(), 3)), rtol=1e-6)
+        np.testing.assert_allclose(sa.triangle_albedo[sel], p.triangle_albedo, rtol=1e-6)
         np.testing.assert_allclose(sa.triangle_emission[sel], np.broadcast_to(p.emission, (sel.sum(), 3)), rtol=1e-6)
         np.testing.assert_allclose(sa.corners()[sel], p.vertices[p.triangles])
         assert np.all(sa.triangle_uv[sel] >= 0) and np.all(sa.triangle_uv[sel] <= 1)
