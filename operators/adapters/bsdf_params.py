@@ -47,8 +47,11 @@ def _principled(reader, node, owner, scale):
             reader.warn(f"{owner}: Principled BSDF '{node.name}' {name} {reader.value(node, name, owner):g} is "
                         "not modelled (LMDP keeps its diffuse, specular and metallic parts)")
     tint = _colour(reader, node, owner, "Specular Tint", 1.0) if "Specular Tint" in node.inputs else np.ones(3)
-    return bsdf.principled_lobes(_colour(reader, node, owner, "Base Color", 0.8),
-                                 _value(reader, node, owner, "Metallic", 0.0),
+    metallic = _value(reader, node, owner, "Metallic", 0.0)
+    # Base Color is the conductor's F0 only (the diffuse colour at a point is shading.py's): read
+    # (and warn about a texture there) only when the material is metallic.
+    base = _colour(reader, node, owner, "Base Color", 0.8) if metallic > 0 else np.full(3, 0.8)
+    return bsdf.principled_lobes(base, metallic,
                                  _value(reader, node, owner, "Roughness", 0.5),
                                  _value(reader, node, owner, "IOR", 1.5),
                                  _value(reader, node, owner, "Specular IOR Level", 0.5), tint,
@@ -83,6 +86,8 @@ def shader_lobes(reader, socket, owner, scale=1.0, depth=0):
     if node.type == 'BSDF_GLOSSY':
         return _glossy(reader, node, owner, scale)
     if node.type == 'MIX_SHADER':
+        if not (_has_lobes(reader, node.inputs[1], depth + 1) or _has_lobes(reader, node.inputs[2], depth + 1)):
+            return []    # no lobe below: its factor is shading.py's alone
         fac = min(max(reader.value(node, "Fac", owner), 0.0), 1.0)
         return (shader_lobes(reader, node.inputs[1], owner, scale * (1.0 - fac), depth + 1)
                 + shader_lobes(reader, node.inputs[2], owner, scale * fac, depth + 1))
@@ -90,6 +95,21 @@ def shader_lobes(reader, socket, owner, scale=1.0, depth=0):
         return (shader_lobes(reader, node.inputs[0], owner, scale, depth + 1)
                 + shader_lobes(reader, node.inputs[1], owner, scale, depth + 1))
     return []
+
+
+def _has_lobes(reader, socket, depth=0):
+    """True when a Principled or Glossy BSDF feeds ``socket`` through Mix / Add Shaders."""
+    source = reader._source(socket)
+    if source is None or depth > 32:
+        return False
+    node = source[0]
+    if node.type in ('BSDF_PRINCIPLED', 'BSDF_GLOSSY'):
+        return True
+    if node.type == 'MIX_SHADER':
+        return _has_lobes(reader, node.inputs[1], depth + 1) or _has_lobes(reader, node.inputs[2], depth + 1)
+    if node.type == 'ADD_SHADER':
+        return _has_lobes(reader, node.inputs[0], depth + 1) or _has_lobes(reader, node.inputs[1], depth + 1)
+    return False
 
 
 def material_lobes(reader, mat):
