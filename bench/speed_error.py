@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import metrics, world_scene
+from . import glossy_scene, metrics, world_scene
 from .blender_session import SENTINEL
 from .common import RESULTS, ROOT, Stopwatch, log
 from .methods import CyclesBake, LMDPBake, lmdp_bake_available
@@ -38,8 +38,8 @@ CASES = {
     "heavy": dict(title="Heavy Cornell box (bumpy, subdivided), floor", kind="HEAVY", receiver="Floor"),
     "sun_hdri": dict(title="Cornell box without its lamp under city.exr, its sun through the open front, floor",
                      kind="CORNELL_BOX", receiver="Floor", world=True),
-    "glossy": dict(title="Glossy box: checkered glossy floor, metallic sphere (Principled)", kind="GLOSSY_BOX",
-                   receiver="Floor"),
+    "glossy": dict(title="Glossy box: textured glossy floor (an Image Texture), metallic sphere (Principled)",
+                   kind="GLOSSY_BOX", receiver="Floor", textured=True),
 }
 
 #: Name of the Cycles-with-path-guiding curve.
@@ -119,6 +119,9 @@ def geometry_hash(scene):
         for a in scene.environment.fingerprint_arrays():
             h.update(np.ascontiguousarray(a).tobytes())
         h.update(world_scene.SOURCE.read_bytes())
+    if getattr(scene, "surface", None) is not None:            # the textured glossy scene
+        h.update(scene.surface.fingerprint())
+        h.update(glossy_scene.SOURCE.read_bytes())
     return h.hexdigest()
 
 
@@ -196,6 +199,8 @@ def prepare_case(key, profile, blender, cache_dir):
         blender.load_scene(case.kind)
         if spec.get("world"):
             case.scene = world_scene.build(blender)
+        if spec.get("textured"):
+            case.scene = glossy_scene.build(blender)
     case.info["blender_scene_seconds"] = sw.seconds
     a, b, meta = load_or_bake_reference(case, cache_dir)
     case.rows, case.cols, coverage = scored_texels(case, a, b)
