@@ -27,6 +27,7 @@ import bpy
 
 from ...lmdp_addon.errors import SceneError
 from .gltf_lightmap import emissive_copy, hook_gltf, unhook_gltf
+from .lightmap_uvs import chosen_uv_name
 
 #: Custom property of preview materials, and of objects whose slots show one (JSON of the slots).
 PREVIEW_TAG = "lmdp_preview_material"
@@ -102,18 +103,18 @@ def hook_up(targets, mode, uv_maps=None):
     ``mode`` way (:data:`HOOK_UP_ITEMS`), read through the UV map ``uv_maps[object name]`` (None
     or absent: the render UV map); returns the warnings. Run :func:`check_hook_up` first."""
     warnings = []
-    uv_maps = uv_maps or {}
+    baked_on = dict(uv_maps or {})   # object name -> the UV map its lightmap is laid out on
     users = material_users() if mode in ("MULTIPLY", "GLTF") else None
-    uv_maps = {obj.name: _pinned_uv_map(obj, uv_maps.get(obj.name)) for obj, _ in targets}
+    uv_maps = {obj.name: _pinned_uv_map(obj, baked_on.get(obj.name)) for obj, _ in targets}
     shown = {obj.name_full: (image, uv_maps.get(obj.name)) for obj, image in targets}
     shared = {}
     for obj, image in targets:
         if mode == "MULTIPLY":
             warnings += hook_multiply(obj, image, users, uv_maps.get(obj.name), shown, shared)
         elif mode == "PREVIEW":
-            hook_preview(obj, image)
+            hook_preview(obj, image, uv_map=baked_on.get(obj.name))
         elif mode == "GLTF_EMISSIVE":
-            hook_preview(obj, *emissive_copy(image))
+            hook_preview(obj, *emissive_copy(image), uv_map=baked_on.get(obj.name))
         elif mode == "GLTF":
             hook_gltf(obj, image, _own_materials(obj, warnings, users), warnings, uv_maps.get(obj.name))
     if shared:
@@ -374,9 +375,15 @@ def _build_preview_tree(mat, image):
     tree.links.new(emission.outputs[0], out.inputs["Surface"])
 
 
-def preview_material(obj, image, strength=1.0):
+#: The UV Map node of the preview material: the lightmap is read through its own UV map.
+NODE_PREVIEW_UV = "LMDP Lightmap UV"
+
+
+def preview_material(obj, image, strength=1.0, uv_map=None):
     """The tagged preview material of ``obj`` (Emission = lightmap x ``strength``), created on
-    first use (and its nodes rebuilt if its image node was deleted)."""
+    first use (and its nodes rebuilt if its image node was deleted); it reads the lightmap
+    through the UV map ``uv_map`` (None: the lightmap's map, ``lightmap_uvs.chosen_uv_name``:
+    "LMDP Lightmap" where the mesh has it, else its render map)."""
     mat = next((m for m in bpy.data.materials if m.get(PREVIEW_TAG) == obj.name and is_local(m)), None)
     if mat is None:
         mat = bpy.data.materials.new(f"{obj.name}_lmdp_preview")
@@ -384,6 +391,16 @@ def preview_material(obj, image, strength=1.0):
     if mat.node_tree is None or mat.node_tree.nodes.get(NODE_IMAGE) is None:
         _build_preview_tree(mat, image)
     mat.node_tree.nodes[NODE_IMAGE].image = image
+    uv_map = uv_map or (chosen_uv_name(obj.data) if getattr(obj.data, "uv_layers", None) is not None else None)
+    if uv_map:
+        tree = mat.node_tree
+        node = tree.nodes.get(NODE_PREVIEW_UV)
+        if node is None:
+            node = tree.nodes.new("ShaderNodeUVMap")
+            node.name = node.label = NODE_PREVIEW_UV
+            node.location = (-500, 0)
+            tree.links.new(node.outputs["UV"], tree.nodes[NODE_IMAGE].inputs["Vector"])
+        node.uv_map = uv_map
     for node in mat.node_tree.nodes:
         if node.type == 'EMISSION':
             node.inputs["Strength"].default_value = float(strength)
@@ -399,11 +416,11 @@ def _slot_state(slot):
     return {"link": link, "material": material.name_full if material is not None else None}
 
 
-def hook_preview(obj, image, strength=1.0):
+def hook_preview(obj, image, strength=1.0, uv_map=None):
     """Show the preview material on every slot of ``obj`` at object level (mesh data untouched,
     except for one empty slot added to a mesh that has none). The slots' previous state is kept
     on the object, extended with any slot added since an earlier preview."""
-    mat = preview_material(obj, image, strength)
+    mat = preview_material(obj, image, strength, uv_map)
     saved = _saved_slots(obj)
     if saved is None:
         added = False

@@ -366,3 +366,24 @@ def test_imported_gltf_gets_lightmap_uvs_and_matches_cycles(fresh_scene, lmdp_ex
         print(f"{name}: {len(ours)} texels, mean rel. diff {np.round(rel * 100, 2)} % ± "
               f"{np.round(rel_sigma * 100, 2)} % (1 s.e.)")
         assert np.all(np.abs(rel) < tolerance), rel
+
+
+def test_preview_reads_the_lightmap_through_its_own_uv_map(fresh_scene, lmdp_ext):
+    """The PREVIEW (and GLTF_EMISSIVE) material shows the lightmap where it was baked: its Image
+    Texture reads "LMDP Lightmap" (the bake's map) through a UV Map node, not the render UV map
+    it read implicitly before (the lightmaps of auto-UV'd meshes showed scrambled islands)."""
+    materials = lmdp_ext.sub("operators.adapters.materials")
+    bpy.ops.mesh.primitive_plane_add(size=1.0)
+    obj = bpy.context.active_object
+    mesh = obj.data
+    mesh.uv_layers.new(name=LIGHTMAP)
+    mesh.uv_layers[0].active_render = True
+    image = bpy.data.images.new("LMDP preview test", 8, 8, alpha=True, float_buffer=True)
+    for uv_map, expected in ((None, LIGHTMAP), (mesh.uv_layers[0].name, mesh.uv_layers[0].name)):
+        materials.hook_preview(obj, image, uv_map=uv_map)
+        tree = obj.material_slots[0].material.node_tree
+        tex = tree.nodes[materials.NODE_IMAGE]
+        links = tex.inputs["Vector"].links
+        assert links and links[0].from_node.type == 'UVMAP' and links[0].from_node.uv_map == expected
+        materials.unhook_preview(obj)
+    assert obj.material_slots[0].material is None      # the user's (empty) slot is back
