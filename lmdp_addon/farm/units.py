@@ -1,0 +1,131 @@
+"""Runners that trace a bake's work units or a build's batches on a farm's workers.
+
+A runner is made per bake (:class:`BakeUnits`) or build (:class:`BuildBatches`) as a context
+manager. On entry it scatters the recipe (``worker.BakeRecipe`` / ``worker.BuildRecipe``: the
+scene arrays, the settings, the solved stages) to every worker once (``broadcast=True``; Dask
+keys it by a hash of its content). A bake then scatters each object's :class:`UnitJob` once; per
+unit only the unit's number travels, and its sums come back. Results stream back in the order
+they finish (``as_completed``); the engine adds them in unit order, so the result is the local
+one. Closing a stream (the engine does on ``Cancelled`` or an error) cancels its futures;
+leaving the block releases the scattered data.
+
+Tasks are pure: a unit has the same key, the same inputs and the same seed wherever it runs. When
+a worker dies, the scheduler runs its units again on the others (the recipe is on every worker),
+and each unit's result is taken once.
+"""
+import pickle
+from dataclasses import replace
+from types import SimpleNamespace
+
+from . import worker
+
+
+def _without_caster(lmdp):
+    """The solved stages a worker needs: ``lmdp`` with its dynamics' ray caster (an embree BVH,
+    not picklable; the worker builds its own of the same scene) left out."""
+    if lmdp is None:
+        return None
+    dynamics = getattr(lmdp, "dynamics", None)
+    if dynamics is not None and getattr(dynamics, "caster", None) is not None:
+        dynamics = replace(dynamics, caster=None)
+    return SimpleNamespace(scene=lmdp.scene, states=lmdp.states, dynamics=dynamics,
+                           lmdp=getattr(lmdp, "lmdp", None), solution=getattr(lmdp, "solution", None))
+
+
+class _Runner:
+    """Scatter a recipe once; submit units that depend on it; count the bytes sent."""
+
+    def __init__(self, farm, recipe):
+        self.farm = farm
+        self.recipe = recipe
+        self.future = None
+        self.held = []
+
+    def __enter__(self):
+        client = self.farm.client
+        self.future = client.scatter(self.recipe, broadcast=True, hash=True)
+        self.held.append(self.future)
+        self.farm.traffic.add_once(_nbytes(self.recipe), self.farm.n_workers)
+        return self
+
+    def __exit__(self, *exc):
+        for future in self.held:
+            future.release()
+        self.held.clear()
+        return False
+
+    def _stream(self, futures):
+        """The futures' results as they finish; on close (or an error) cancel the rest."""
+        from distributed import as_completed
+        try:
+            for future in as_completed(futures, loop=self.farm.client.loop):
+                result = future.result()
+                self.farm.traffic.add_result(_nbytes(result))
+                yield result
+        finally:
+            self.farm.client.cancel([f for f in futures if not f.done()])
+
+
+class BakeUnits(_Runner):
+    """``runner(job, unit_ids)``: ``driver.trace_unit`` of each unit on the workers."""
+
+    def __init__(self, farm, scene, settings, lmdp):
+        super().__init__(farm, worker.BakeRecipe(scene, settings, _without_caster(lmdp)))
+
+    def __call__(self, job, unit_ids):
+        client = self.farm.client
+        job_future = client.scatter(job, broadcast=True, hash=True)
+        self.held.append(job_future)
+        self.farm.traffic.add_once(_nbytes(job), self.farm.n_workers)
+        futures = [client.submit(worker.bake_unit, self.future.key, self.future, job_future, int(u), pure=True)
+                   for u in unit_ids]
+        self.farm.traffic.add_units([_nbytes((worker.bake_unit.__qualname__, self.future.key, job_future.key, int(u)))
+                                     for u in unit_ids])
+        return self._stream(futures)
+
+
+class BuildBatches(_Runner):
+    """``runner(starts)``: ``(batch, _DynamicsBuild.trace_batch(start))`` on the workers."""
+
+    def __init__(self, farm, scene, states, rays_per_stratum, seed, exact_nearest, light_samples):
+        super().__init__(farm, worker.BuildRecipe(scene, states, int(rays_per_stratum), int(seed),
+                                                  bool(exact_nearest), int(light_samples)))
+
+    def __call__(self, starts):
+        client = self.farm.client
+        futures = [client.submit(worker.build_batch, self.future.key, self.future, b, int(start), pure=True)
+                   for b, start in enumerate(starts)]
+        self.farm.traffic.add_units([_nbytes((worker.build_batch.__qualname__, self.future.key, b, int(start)))
+                                     for b, start in enumerate(starts)])
+        return self._stream(futures)
+
+
+def _nbytes(value):
+    """Pickled size of ``value`` in bytes (what Dask sends of it, to within its framing)."""
+    return len(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+class Traffic:
+    """Bytes a farm sent and received, as pickled sizes: ``once`` (recipes and jobs, scattered
+    to every worker: size x workers), ``per_unit`` (each unit's task arguments: the function's
+    name, the recipe's and the job's keys, the unit's number), ``results`` (the units' outcomes)."""
+
+    def __init__(self):
+        self.once = 0
+        self.units = 0
+        self.unit_bytes = 0
+        self.results = 0
+
+    def add_once(self, nbytes, workers):
+        self.once += int(nbytes) * max(1, int(workers))
+
+    def add_units(self, sizes):
+        self.units += len(sizes)
+        self.unit_bytes += int(sum(sizes))
+
+    def add_result(self, nbytes):
+        self.results += int(nbytes)
+
+    def as_dict(self):
+        return {"scattered_bytes": self.once, "units": self.units,
+                "unit_task_bytes": self.unit_bytes, "result_bytes": self.results}

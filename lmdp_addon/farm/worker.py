@@ -1,0 +1,88 @@
+"""What runs on a farm's workers: one bake work unit or one batch of the build, from the recipe
+the client scattered once (:mod:`~lmdp_addon.farm.units`).
+
+A recipe is turned into its tracer (``driver.make_tracer``: BVH, guide, gather) or its build
+(``dynamics._DynamicsBuild``: BVH, locator, ray patterns) once per worker process and kept in
+:data:`WORKER_RECIPES`, keyed by the recipe's Dask key (a hash of its content); every unit of it
+that lands on the worker reuses it. Both are deterministic functions of the recipe, so a unit
+computes the same numbers on any worker, and a unit that is run again (its worker died) gives the
+same result. No dask here: these are plain functions that Dask calls.
+"""
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+#: Recipes set up in this worker process: {Dask key: tracer or build}, the most recent last.
+WORKER_RECIPES = OrderedDict()
+#: Recipes kept (a worker serves one bake or build at a time; one more for an overlap).
+KEEP = 2
+_LOCK = threading.Lock()
+
+
+@dataclass
+class BakeRecipe:
+    """What every work unit of a bake needs: ``driver.make_tracer(scene, settings, lmdp)``.
+
+    scene     the traced :class:`~lmdp_addon.scene_arrays.SceneArrays`
+    settings  :class:`~lmdp_addon.settings.Settings`
+    lmdp      the solved stages (``scene``, ``states``, ``dynamics`` without its ray caster,
+              ``lmdp``, ``solution``), or None (UNGUIDED)
+    """
+
+    scene: object
+    settings: object
+    lmdp: object = None
+
+    def set_up(self):
+        from ..bake.driver import make_tracer
+        with self.scene.held():
+            return make_tracer(self.scene, self.settings, self.lmdp)[0]
+
+
+@dataclass
+class BuildRecipe:
+    """What every batch of the build needs: the arguments of ``dynamics._DynamicsBuild``."""
+
+    scene: object
+    states: object
+    rays_per_stratum: int
+    seed: int
+    exact_nearest: bool
+    light_samples: int
+
+    def set_up(self):
+        from ..model.dynamics import _DynamicsBuild
+        with self.scene.held():
+            build = _DynamicsBuild(self.scene, self.states, self.rays_per_stratum, self.seed, None,
+                                   self.exact_nearest, self.light_samples)
+            build.tables.result()        # the locator; then the set-up pool is not needed
+        build.pool.shutdown(wait=True)
+        return build
+
+
+def set_up(key, recipe):
+    """The tracer or build of ``recipe`` in this process (set up on first use, then reused)."""
+    with _LOCK:
+        if key in WORKER_RECIPES:
+            WORKER_RECIPES.move_to_end(key)
+            return WORKER_RECIPES[key]
+        made = recipe.set_up()
+        WORKER_RECIPES[key] = made
+        while len(WORKER_RECIPES) > KEEP:
+            WORKER_RECIPES.popitem(last=False)
+        return made
+
+
+def bake_unit(key, recipe, job, unit_id):
+    """``driver.trace_unit`` of unit ``unit_id`` of ``job`` with the recipe's tracer."""
+    from ..bake.driver import trace_unit
+    tracer = set_up(key, recipe)
+    with recipe.scene.held():
+        return trace_unit(tracer, job, unit_id)
+
+
+def build_batch(key, recipe, batch, start):
+    """``(batch, _DynamicsBuild.trace_batch(start))`` with the recipe's build."""
+    build = set_up(key, recipe)
+    with recipe.scene.held():
+        return batch, build.trace_batch(start)
