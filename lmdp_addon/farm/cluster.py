@@ -120,9 +120,11 @@ class Farm:
         """A runner of one bake's work units (``units.BakeUnits``, a context manager)."""
         return units.BakeUnits(self, scene, settings, lmdp)
 
-    def build_batches(self, scene, states, rays_per_stratum, seed, exact_nearest, light_samples):
+    def build_batches(self, scene, states, rays_per_stratum, seed, exact_nearest, light_samples,
+                      points_per_batch):
         """A runner of one build's ray batches (``units.BuildBatches``, a context manager)."""
-        return units.BuildBatches(self, scene, states, rays_per_stratum, seed, exact_nearest, light_samples)
+        return units.BuildBatches(self, scene, states, rays_per_stratum, seed, exact_nearest, light_samples,
+                                  points_per_batch)
 
     # ---- lifetime -------------------------------------------------------------------------------
 

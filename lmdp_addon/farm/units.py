@@ -87,9 +87,10 @@ class BakeUnits(_Runner):
 class BuildBatches(_Runner):
     """``runner(starts)``: ``(batch, _DynamicsBuild.trace_batch(start))`` on the workers."""
 
-    def __init__(self, farm, scene, states, rays_per_stratum, seed, exact_nearest, light_samples):
+    def __init__(self, farm, scene, states, rays_per_stratum, seed, exact_nearest, light_samples,
+                 points_per_batch):
         super().__init__(farm, worker.BuildRecipe(scene, states, int(rays_per_stratum), int(seed),
-                                                  bool(exact_nearest), int(light_samples)))
+                                                  bool(exact_nearest), int(light_samples), int(points_per_batch)))
 
     def __call__(self, starts):
         client = self.farm.client

@@ -12,6 +12,8 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import numpy as np
+
 #: Recipes set up in this worker process: {Dask key: tracer or build}, the most recent last.
 WORKER_RECIPES = OrderedDict()
 #: Recipes kept (a worker serves one bake or build at a time; one more for an overlap).
@@ -41,7 +43,8 @@ class BakeRecipe:
 
 @dataclass
 class BuildRecipe:
-    """What every batch of the build needs: the arguments of ``dynamics._DynamicsBuild``."""
+    """What every batch of the build needs: the arguments of ``dynamics._DynamicsBuild`` and
+    the client's batch size (points per batch: the batches' bounds are the client's)."""
 
     scene: object
     states: object
@@ -49,6 +52,7 @@ class BuildRecipe:
     seed: int
     exact_nearest: bool
     light_samples: int
+    points_per_batch: int
 
     def set_up(self):
         from ..model.dynamics import _DynamicsBuild
@@ -57,6 +61,9 @@ class BuildRecipe:
                                    self.exact_nearest, self.light_samples)
             build.tables.result()        # the locator; then the set-up pool is not needed
         build.pool.shutdown(wait=True)
+        if build.points_per_batch != self.points_per_batch:      # the client's batch size rules
+            build.points_per_batch = self.points_per_batch
+            build.ray_rows = np.repeat(np.arange(self.points_per_batch * build.S, dtype=np.int32), build.R)
         return build
 
 

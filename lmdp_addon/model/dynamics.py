@@ -249,7 +249,8 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
         farm = farm if farm is not None else farm_session.current()
         if farm is None:
             return build.run(progress)
-        with farm.build_batches(scene, states, R, seed, exact_nearest, light_samples) as runner:
+        with farm.build_batches(scene, states, R, seed, exact_nearest, light_samples,
+                                build.points_per_batch) as runner:
             return build.run(progress, runner)
 
 
