@@ -11,7 +11,7 @@ Python process with those and this package importable::
 one unit per process keeps its memory bounded, about 64 MiB a unit).
 """
 from ..errors import LMDPError
-from . import units, versions
+from . import aliases, units, versions
 
 #: The pinned release (requirements-dev.txt); what the message for a missing dask asks for.
 DASK_PIN = "2026.8.0"
@@ -85,6 +85,7 @@ class Farm:
             if self.cluster is not None:
                 self.client.wait_for_workers(int(workers), timeout=60)
             self.check_workers()
+            aliases.install(self.client)
         except BaseException:
             self.close()
             raise

@@ -13,11 +13,35 @@ Tasks are pure: a unit has the same key, the same inputs and the same seed where
 a worker dies, the scheduler runs its units again on the others (the recipe is on every worker),
 and each unit's result is taken once.
 """
+import io
 import pickle
-from dataclasses import replace
+from dataclasses import fields, replace
 from types import SimpleNamespace
 
+from ..scene_arrays import SceneArrays
 from . import worker
+
+
+def _plain_scene(values):
+    """A :class:`SceneArrays` of the field ``values`` (how :func:`dumps` sends subclasses)."""
+    return SceneArrays(**values)
+
+
+class _EnginePickler(pickle.Pickler):
+    """Pickles a :class:`SceneArrays` subclass from another layer (the Blender adapters'
+    ``CapturedScene``, not importable on the workers) as the plain SceneArrays of its arrays."""
+
+    def reducer_override(self, obj):
+        if isinstance(obj, SceneArrays) and type(obj) is not SceneArrays:
+            return _plain_scene, ({f.name: getattr(obj, f.name) for f in fields(SceneArrays) if f.init},)
+        return NotImplemented
+
+
+def dumps(value):
+    """``value`` pickled for the workers (:class:`_EnginePickler`): what is scattered."""
+    buffer = io.BytesIO()
+    _EnginePickler(buffer, protocol=pickle.HIGHEST_PROTOCOL).dump(value)
+    return buffer.getvalue()
 
 
 def _without_caster(lmdp):
@@ -42,11 +66,16 @@ class _Runner:
         self.held = []
 
     def __enter__(self):
-        client = self.farm.client
-        self.future = client.scatter(self.recipe, broadcast=True, hash=True)
-        self.held.append(self.future)
-        self.farm.traffic.add_once(_nbytes(self.recipe), self.farm.n_workers)
+        self.future = self._scatter(self.recipe)
         return self
+
+    def _scatter(self, value):
+        """``value`` pickled (:func:`dumps`) and scattered to every worker; its future."""
+        blob = dumps(value)
+        future = self.farm.client.scatter(blob, broadcast=True, hash=True)
+        self.held.append(future)
+        self.farm.traffic.add_once(len(blob), self.farm.n_workers)
+        return future
 
     def __exit__(self, *exc):
         for future in self.held:
@@ -74,13 +103,11 @@ class BakeUnits(_Runner):
 
     def __call__(self, job, unit_ids):
         client = self.farm.client
-        job_future = client.scatter(job, broadcast=True, hash=True)
-        self.held.append(job_future)
-        self.farm.traffic.add_once(_nbytes(job), self.farm.n_workers)
-        futures = [client.submit(worker.bake_unit, self.future.key, self.future, job_future, int(u), pure=True)
-                   for u in unit_ids]
-        self.farm.traffic.add_units([_nbytes((worker.bake_unit.__qualname__, self.future.key, job_future.key, int(u)))
-                                     for u in unit_ids])
+        job_future = self._scatter(job)
+        futures = [client.submit(worker.bake_unit, self.future.key, self.future, job_future.key, job_future,
+                                 int(u), pure=True) for u in unit_ids]
+        self.farm.traffic.add_units([_nbytes((worker.bake_unit.__qualname__, self.future.key, job_future.key,
+                                              int(u))) for u in unit_ids])
         return self._stream(futures)
 
 

@@ -1,21 +1,24 @@
 """What runs on a farm's workers: one bake work unit or one batch of the build, from the recipe
 the client scattered once (:mod:`~lmdp_addon.farm.units`).
 
-A recipe is turned into its tracer (``driver.make_tracer``: BVH, guide, gather) or its build
+A recipe arrives pickled (``units.dumps``) and is turned into its tracer (``driver.make_tracer``: BVH, guide, gather) or its build
 (``dynamics._DynamicsBuild``: BVH, locator, ray patterns) once per worker process and kept in
 :data:`WORKER_RECIPES`, keyed by the recipe's Dask key (a hash of its content); every unit of it
 that lands on the worker reuses it. Both are deterministic functions of the recipe, so a unit
 computes the same numbers on any worker, and a unit that is run again (its worker died) gives the
 same result. No dask here: these are plain functions that Dask calls.
 """
+import pickle
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 
-#: Recipes set up in this worker process: {Dask key: tracer or build}, the most recent last.
+#: Recipes set up in this worker process: {Dask key: (recipe, tracer or build)}, the most
+#: recent last; and the bakes' jobs (``driver.UnitJob``) unpickled here, {Dask key: job}.
 WORKER_RECIPES = OrderedDict()
+WORKER_JOBS = OrderedDict()
 #: Recipes kept (a worker serves one bake or build at a time; one more for an overlap).
 KEEP = 2
 _LOCK = threading.Lock()
@@ -67,29 +70,43 @@ class BuildRecipe:
         return build
 
 
-def set_up(key, recipe):
-    """The tracer or build of ``recipe`` in this process (set up on first use, then reused)."""
+def _cached(cache, key, make):
+    """``cache[key]``, made by ``make()`` on first use; the :data:`KEEP` most recent are kept."""
     with _LOCK:
-        if key in WORKER_RECIPES:
-            WORKER_RECIPES.move_to_end(key)
-            return WORKER_RECIPES[key]
-        made = recipe.set_up()
-        WORKER_RECIPES[key] = made
-        while len(WORKER_RECIPES) > KEEP:
-            WORKER_RECIPES.popitem(last=False)
+        if key in cache:
+            cache.move_to_end(key)
+            return cache[key]
+        made = cache[key] = make()
+        while len(cache) > KEEP:
+            cache.popitem(last=False)
         return made
 
 
-def bake_unit(key, recipe, job, unit_id):
-    """``driver.trace_unit`` of unit ``unit_id`` of ``job`` with the recipe's tracer."""
+def set_up(key, blob):
+    """``(recipe, its tracer or build)`` of the pickled recipe ``blob`` in this process
+    (unpickled and set up on first use, then reused)."""
+    def make():
+        recipe = pickle.loads(blob)
+        return recipe, recipe.set_up()
+    return _cached(WORKER_RECIPES, key, make)
+
+
+def job(key, blob):
+    """The pickled ``driver.UnitJob`` ``blob`` (unpickled once per process)."""
+    return _cached(WORKER_JOBS, key, lambda: pickle.loads(blob))
+
+
+def bake_unit(recipe_key, recipe_blob, job_key, job_blob, unit_id):
+    """``driver.trace_unit`` of unit ``unit_id`` of the job with the recipe's tracer."""
     from ..bake.driver import trace_unit
-    tracer = set_up(key, recipe)
+    recipe, tracer = set_up(recipe_key, recipe_blob)
+    unit_job = job(job_key, job_blob)
     with recipe.scene.held():
-        return trace_unit(tracer, job, unit_id)
+        return trace_unit(tracer, unit_job, unit_id)
 
 
-def build_batch(key, recipe, batch, start):
+def build_batch(recipe_key, recipe_blob, batch, start):
     """``(batch, _DynamicsBuild.trace_batch(start))`` with the recipe's build."""
-    build = set_up(key, recipe)
+    recipe, build = set_up(recipe_key, recipe_blob)
     with recipe.scene.held():
         return batch, build.trace_batch(start)
