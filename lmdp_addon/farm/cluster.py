@@ -33,6 +33,17 @@ def import_distributed():
     return distributed
 
 
+def local_workers_import_the_engine():
+    """Let local worker processes (spawned with this process's ``sys.path``) import the engine as
+    ``lmdp_addon``: inside Blender it is the extension's copy, under another package name, so its
+    folder's parent goes at the end of ``sys.path`` (the extension's modules stay first)."""
+    import os
+    import sys
+    root = os.path.dirname(versions.ENGINE_DIR)
+    if aliases.engine_name() != aliases.WORKER_NAME and root not in sys.path:
+        sys.path.append(root)
+
+
 def _probe_function():
     """The workers' version probe, defined here so that cloudpickle sends it by value: a worker
     that cannot import the engine then still answers (with what it could not import)."""
@@ -68,6 +79,7 @@ class Farm:
             n = int(workers)
             if n < 1:
                 raise FarmError(f"a local farm needs at least 1 worker process (got {workers})")
+            local_workers_import_the_engine()
             self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                                     dashboard_address=None, silence_logs=40)
             address = self.cluster.scheduler_address

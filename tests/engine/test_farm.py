@@ -189,3 +189,22 @@ def test_missing_dask_says_what_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(FarmError, match=r"pip install 'dask\[distributed\]==2026\.8\.0'"):
         import_distributed()
+
+
+def test_a_local_bake_and_build_never_import_dask(tmp_path):
+    """Dask is imported inside lmdp_addon/farm only, when a Farm is made."""
+    import subprocess
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[2]
+    probe = (f"import sys; sys.path.insert(0, {str(root)!r})\n"
+             "from lmdp_addon import demo_geometry, farm\n"
+             "from lmdp_addon.bake import driver\n"
+             "from lmdp_addon.model import pipeline\n"
+             "from lmdp_addon.settings import Settings\n"
+             "scene = demo_geometry.build_scene_arrays('CORNELL_BOX')\n"
+             "s = Settings(point_count=64, bake_mode='GUIDED', bake_resolution=8, bake_samples=2)\n"
+             "driver.bake(scene, ['Floor'], s, lmdp=pipeline.run_all(scene, s))\n"
+             "print(sorted(n for n in sys.modules if n.split('.')[0] in ('dask', 'distributed', 'tornado')))\n")
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[]"
