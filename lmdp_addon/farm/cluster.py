@@ -5,10 +5,11 @@ Dask is imported here (and in :mod:`~lmdp_addon.farm.units`) only, when a farm i
 of the engine needs numpy, scipy and embreex alone. A worker on another machine is a plain
 Python process with those and this package importable::
 
-    PYTHONPATH=/path/to/checkout dask worker tcp://scheduler:8786 --nthreads 1
+    PYTHONPATH=/path/to/checkout dask worker tcp://scheduler:8786 --nworkers N --nthreads 1
 
-(one process per core: ``--nworkers N --nthreads 1``; the engine's own calls release the GIL, but
-one unit per process keeps its memory bounded, about 64 MiB a unit).
+(N: the machine's cores; one unit per process keeps its memory bounded, about 64 MiB a unit).
+The scheduler (``dask scheduler``) needs no engine: the tasks it sees are sent by value and
+their inputs are bytes (``units``).
 """
 from ..errors import LMDPError
 from . import aliases, units, versions

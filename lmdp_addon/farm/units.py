@@ -44,6 +44,22 @@ def dumps(value):
     return buffer.getvalue()
 
 
+def _remote(name):
+    """``lmdp_addon.farm.worker.<name>`` as a task function that cloudpickle sends by value (it
+    is defined here): the scheduler, which unpickles the tasks, needs no engine, and the workers
+    import it under their own package name whatever the client's (Blender's extension name)."""
+    def task(*args):
+        import importlib
+        return getattr(importlib.import_module("lmdp_addon.farm.worker"), name)(*args)
+    task.__name__ = name
+    return task
+
+
+#: The workers' functions, as tasks.
+BAKE_UNIT = _remote("bake_unit")
+BUILD_BATCH = _remote("build_batch")
+
+
 def _without_caster(lmdp):
     """The solved stages a worker needs: ``lmdp`` with its dynamics' ray caster (an embree BVH,
     not picklable; the worker builds its own of the same scene) left out."""
@@ -104,10 +120,12 @@ class BakeUnits(_Runner):
     def __call__(self, job, unit_ids):
         client = self.farm.client
         job_future = self._scatter(job)
-        futures = [client.submit(worker.bake_unit, self.future.key, self.future, job_future.key, job_future,
-                                 int(u), pure=True) for u in unit_ids]
-        self.farm.traffic.add_units([_nbytes((worker.bake_unit.__qualname__, self.future.key, job_future.key,
-                                              int(u))) for u in unit_ids])
+        ids = [int(u) for u in unit_ids]
+        n = len(ids)
+        futures = client.map(BAKE_UNIT, [self.future.key] * n, [self.future] * n, [job_future.key] * n,
+                             [job_future] * n, ids, pure=True)
+        self.farm.traffic.add_tasks(n, _task_bytes(BAKE_UNIT, [(self.future.key, self.future.key, job_future.key,
+                                                                job_future.key, u) for u in ids]))
         return self._stream(futures)
 
 
@@ -121,11 +139,20 @@ class BuildBatches(_Runner):
 
     def __call__(self, starts):
         client = self.farm.client
-        futures = [client.submit(worker.build_batch, self.future.key, self.future, b, int(start), pure=True)
-                   for b, start in enumerate(starts)]
-        self.farm.traffic.add_units([_nbytes((worker.build_batch.__qualname__, self.future.key, b, int(start)))
-                                     for b, start in enumerate(starts)])
+        n = len(starts)
+        futures = client.map(BUILD_BATCH, [self.future.key] * n, [self.future] * n, list(range(n)),
+                             [int(s) for s in starts], pure=True)
+        self.farm.traffic.add_tasks(n, _task_bytes(BUILD_BATCH, [(self.future.key, self.future.key, b, int(s))
+                                                                 for b, s in enumerate(starts)]))
         return self._stream(futures)
+
+
+def _task_bytes(function, arguments):
+    """Pickled size (cloudpickle, as Dask sends a graph) of the tasks ``function(*a)`` for each
+    ``a`` of ``arguments`` submitted together (the by-value function once), futures counted by
+    their keys."""
+    import cloudpickle
+    return len(cloudpickle.dumps((function, list(arguments)), protocol=pickle.HIGHEST_PROTOCOL))
 
 
 def _nbytes(value):
@@ -135,8 +162,9 @@ def _nbytes(value):
 
 class Traffic:
     """Bytes a farm sent and received, as pickled sizes: ``once`` (recipes and jobs, scattered
-    to every worker: size x workers), ``per_unit`` (each unit's task arguments: the function's
-    name, the recipe's and the job's keys, the unit's number), ``results`` (the units' outcomes)."""
+    to every worker: size x workers), ``unit_bytes`` (the units' tasks: the function, once per
+    submission, and each unit's arguments: the recipe's and the job's keys, its number),
+    ``results`` (the units' outcomes)."""
 
     def __init__(self):
         self.once = 0
@@ -147,9 +175,9 @@ class Traffic:
     def add_once(self, nbytes, workers):
         self.once += int(nbytes) * max(1, int(workers))
 
-    def add_units(self, sizes):
-        self.units += len(sizes)
-        self.unit_bytes += int(sum(sizes))
+    def add_tasks(self, n, nbytes):
+        self.units += int(n)
+        self.unit_bytes += int(nbytes)
 
     def add_result(self, nbytes):
         self.results += int(nbytes)
