@@ -21,6 +21,9 @@ random numbers from ``default_rng([seed, o, b, u])``, so a bake is deterministic
 whatever the thread scheduling. Units run on a small thread pool (embree and numpy release the
 GIL); ``progress.update`` between units raises ``Cancelled`` when the user asked to stop, and
 nothing is returned.
+The same units can run on a bake farm's workers instead (``bake(..., farm=)`` or the farm in use,
+``lmdp_addon.farm``): :func:`trace_unit` is the unit's body on both paths, and the reduction in
+unit order makes the result byte-identical.
 
 Walk of one bake: :func:`bake` -> ``checks.check_bake`` (unless given its plan) ->
 :func:`make_tracer` (``guide.build_guide``, ``gather.build_gather``) -> :func:`bake_object` per

@@ -89,7 +89,7 @@ def tune_allocator():
     """Give glibc's allocator fixed thresholds (mmap 32 MiB, trim 64 MiB; what it adapts to by
     itself) in this worker process. Dask's nanny starts workers with ``MALLOC_TRIM_THRESHOLD_``
     set, which turns glibc's adaptive mmap threshold off: every large temporary array of the
-    wavefront is then mapped and unmapped anew, and a work unit takes about 1.5 times as long.
+    wavefront is then mapped and unmapped anew (page faults on every bounce).
     Elsewhere than glibc: nothing."""
     try:
         libc = ctypes.CDLL("libc.so.6")
