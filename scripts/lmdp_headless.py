@@ -58,7 +58,8 @@ exit status:
        render or the save failed) or an internal error; summary.json's "error" says what happened
   2    bad arguments: a missing, unreadable or corrupt .blend file, an unusable --output,
        --objects naming what cannot carry states, --set with an unknown key or a bad value,
-       --demo with an unknown kind, conflicting options; nothing was computed, and when --output
+       --demo with an unknown kind, conflicting options, a --scheduler that cannot be reached or
+       whose workers run another engine; nothing was computed, and when --output
        is usable summary.json's "error" names the argument
   130  interrupted (Ctrl+C)
 An error ends the run with one line on stderr, "lmdp_headless.py: error: ...", that names the

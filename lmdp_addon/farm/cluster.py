@@ -89,6 +89,10 @@ class Farm:
         self.address = address
         try:
             self.client = distributed.Client(address, timeout=f"{float(timeout)}s", set_as_default=False)
+        except ValueError as error:         # not an address: no scheme, no port, unknown scheme
+            self._close_cluster()
+            raise FarmError(f"{address!r} is not a Dask scheduler address ({error}): give it as "
+                            "tcp://host:port, e.g. tcp://192.168.1.10:8786") from error
         except (OSError, TimeoutError) as error:
             self._close_cluster()
             raise FarmError(f"cannot reach the Dask scheduler at {address} within {float(timeout):g} s "

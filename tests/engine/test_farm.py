@@ -3,6 +3,7 @@ thread each) on this machine must give bakes and builds byte-identical to the lo
 when a worker is killed mid-bake, and refuse what it cannot use (an unreachable scheduler, a
 worker with another engine version or a missing dependency, no dask)."""
 import os
+import re
 import signal
 import sys
 import time
@@ -208,3 +209,20 @@ def test_a_local_bake_and_build_never_import_dask(tmp_path):
     run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("address, message", [
+    ("nonsense", "'nonsense' is not a Dask scheduler address (missing port number"),
+    ("http://127.0.0.1:9", "'http://127.0.0.1:9' is not a Dask scheduler address (unknown address scheme"),
+])
+def test_a_malformed_scheduler_address_is_refused(address, message):
+    with pytest.raises(FarmError, match=re.escape(message)):
+        farm_api.Farm(scheduler=address, timeout=2)
+
+
+def test_a_scheduler_without_workers_is_refused():
+    distributed = import_distributed()
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as empty:
+        with pytest.raises(FarmError, match=re.escape(f"the Dask scheduler at {empty.scheduler_address} has no "
+                                                      "workers: start one with `PYTHONPATH=")):
+            farm_api.Farm(scheduler=empty.scheduler_address)
