@@ -12,13 +12,8 @@ cluster, byte-identical to a local run with the same seed.
 Dask is imported only when a :class:`Farm` is made. :func:`bake` and :func:`build` are the
 Python API.
 """
+from .cluster import Farm, FarmError
 from .session import current, use
-
-
-def Farm(*args, **kwargs):  # noqa: N802 (the class, imported when first used)
-    """:class:`lmdp_addon.farm.cluster.Farm` (imports dask)."""
-    from .cluster import Farm as _Farm
-    return _Farm(*args, **kwargs)
 
 
 def bake(scene, names, settings, lmdp=None, scheduler=None, workers=None, progress=None, farm=None):
@@ -42,4 +37,4 @@ def build(scene, settings, progress=None, scheduler=None, workers=None, farm=Non
         return pipeline.run_all(scene, settings, progress)
 
 
-__all__ = ["Farm", "bake", "build", "current", "use"]
+__all__ = ["Farm", "FarmError", "bake", "build", "current", "use"]

@@ -34,6 +34,25 @@ def import_distributed():
     return distributed
 
 
+def unreachable_message(address, timeout, error):
+    return (f"cannot reach the Dask scheduler at {address} within {float(timeout):g} s ({error}): start "
+            "it with `dask scheduler` on that machine, or check the address and port")
+
+
+def check_reachable(address, timeout):
+    """Raise ``ValueError`` if ``address`` is not a scheduler address, ``OSError`` if nothing
+    accepts a TCP connection there within ``timeout`` seconds (tcp:// and tls:// addresses)."""
+    import socket
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import get_backend
+    scheme, location = parse_address(address)
+    get_backend(scheme)                     # ValueError: unknown scheme
+    if scheme in ("tcp", "tls"):
+        host, port = parse_host_port(location)
+        with socket.create_connection((host, int(port)), timeout=float(timeout)):
+            pass
+
+
 def local_workers_import_the_engine():
     """Let local worker processes (spawned with this process's ``sys.path``) import the engine as
     ``lmdp_addon``: inside Blender it is the extension's copy, under another package name, so its
@@ -88,6 +107,8 @@ class Farm:
             address = str(scheduler)
         self.address = address
         try:
+            if self.cluster is None:        # refused before a Client exists (nothing left behind)
+                check_reachable(address, timeout)
             self.client = distributed.Client(address, timeout=f"{float(timeout)}s", set_as_default=False)
         except ValueError as error:         # not an address: no scheme, no port, unknown scheme
             self._close_cluster()
@@ -95,9 +116,7 @@ class Farm:
                             "tcp://host:port, e.g. tcp://192.168.1.10:8786") from error
         except (OSError, TimeoutError) as error:
             self._close_cluster()
-            raise FarmError(f"cannot reach the Dask scheduler at {address} within {float(timeout):g} s "
-                            f"({error}): start it with `dask scheduler` on that machine, or check the "
-                            "address and port") from error
+            raise FarmError(unreachable_message(address, timeout, error)) from error
         try:
             if self.cluster is not None:
                 self.client.wait_for_workers(int(workers), timeout=60)

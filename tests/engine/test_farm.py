@@ -222,7 +222,7 @@ def test_a_malformed_scheduler_address_is_refused(address, message):
 
 def test_a_scheduler_without_workers_is_refused():
     distributed = import_distributed()
-    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as empty:
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as empty:
         with pytest.raises(FarmError, match=re.escape(f"the Dask scheduler at {empty.scheduler_address} has no "
                                                       "workers: start one with `PYTHONPATH=")):
             farm_api.Farm(scheduler=empty.scheduler_address)
