@@ -11,17 +11,13 @@ Python process with those and this package importable::
 The scheduler (``dask scheduler``) needs no engine: the tasks it sees are sent by value and
 their inputs are bytes (``units``).
 """
-from ..errors import LMDPError
 from . import aliases, units, versions
+from .versions import FarmError
 
 #: The pinned release (requirements-dev.txt); what the message for a missing dask asks for.
 DASK_PIN = "2026.8.0"
 #: Seconds to wait for a scheduler before refusing it.
 CONNECT_TIMEOUT = 5.0
-
-
-class FarmError(LMDPError):
-    """The farm cannot be used: dask missing, scheduler unreachable, a worker that differs."""
 
 
 def import_distributed():
@@ -85,12 +81,14 @@ class Farm:
 
     On connect every worker runs :func:`versions.probe`; a worker with another engine version or
     other dependency versions, or missing one, is refused (:class:`FarmError` naming its address
-    and both versions). ``traffic`` counts the bytes sent (``units.Traffic``).
+    and both versions). A worker that joins later checks itself on its first unit of a bake or
+    build (``versions.check_engine``: the bake then fails with :class:`versions.EngineMismatch`). ``traffic`` counts the bytes sent (``units.Traffic``).
     """
 
     def __init__(self, scheduler=None, workers=None, timeout=CONNECT_TIMEOUT):
         distributed = import_distributed()
         self.cluster = None
+        self.engine = None                  #: this engine's versions.probe(), once checked
         self.traffic = units.Traffic()
         if (scheduler is None) == (workers is None):
             raise FarmError("give a farm either a scheduler address (e.g. tcp://host:8786) or a number "
@@ -145,10 +143,8 @@ class Farm:
         for address, remote in sorted(reports.items()):
             wrong = versions.mismatches(local, remote)
             if wrong:
-                what = "; ".join(f"{key} {theirs} on the worker, {ours} here" for key, ours, theirs in wrong)
-                raise FarmError(f"worker {address} runs a different engine or dependencies ({what}): "
-                                "install the same checkout and the pinned requirements there, or leave "
-                                "that worker out")
+                raise FarmError(versions.mismatch_message(address, wrong))
+        self.engine = local
         return reports
 
     # ---- the engine's seams (driver.bake, dynamics.build_passive_dynamics) ----------------------

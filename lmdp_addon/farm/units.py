@@ -115,7 +115,7 @@ class BakeUnits(_Runner):
     """``runner(job, unit_ids)``: ``driver.trace_unit`` of each unit on the workers."""
 
     def __init__(self, farm, scene, settings, lmdp):
-        super().__init__(farm, worker.BakeRecipe(scene, settings, _without_caster(lmdp)))
+        super().__init__(farm, worker.BakeRecipe(scene, settings, _without_caster(lmdp), farm.engine))
 
     def __call__(self, job, unit_ids):
         client = self.farm.client
@@ -135,7 +135,8 @@ class BuildBatches(_Runner):
     def __init__(self, farm, scene, states, rays_per_stratum, seed, exact_nearest, light_samples,
                  points_per_batch):
         super().__init__(farm, worker.BuildRecipe(scene, states, int(rays_per_stratum), int(seed),
-                                                  bool(exact_nearest), int(light_samples), int(points_per_batch)))
+                                                  bool(exact_nearest), int(light_samples), int(points_per_batch),
+                                                  farm.engine))
 
     def __call__(self, starts):
         client = self.farm.client

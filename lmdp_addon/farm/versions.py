@@ -4,6 +4,9 @@ import hashlib
 import importlib
 import os
 import platform
+import socket
+
+from ..errors import LMDPError
 
 #: The engine's dependencies a worker must have, as the module names that are imported.
 DEPENDENCIES = ("numpy", "scipy", "embreex")
@@ -45,6 +48,41 @@ def dependency_versions():
 def probe():
     """``{"engine": engine_version(), **dependency_versions()}`` of this process."""
     return {"engine": engine_version(), **dependency_versions()}
+
+
+class FarmError(LMDPError):
+    """The farm cannot be used: dask missing, scheduler unreachable, a worker that differs."""
+
+
+class EngineMismatch(FarmError):
+    """A worker that joined after the connect check runs another engine (raised by its first
+    unit of a recipe, re-raised by the client)."""
+
+
+def this_worker():
+    """This worker's Dask address (or host and process id outside a Dask worker)."""
+    try:
+        from distributed import get_worker
+        return get_worker().address
+    except (ImportError, ValueError):
+        return f"{socket.gethostname()} (pid {os.getpid()})"
+
+
+def check_engine(expected):
+    """Raise :class:`EngineMismatch` unless this process's :func:`probe` is ``expected`` (the
+    client's; None: no check)."""
+    if expected is None:
+        return
+    wrong = mismatches(expected, probe())
+    if wrong:
+        raise EngineMismatch(mismatch_message(this_worker(), wrong))
+
+
+def mismatch_message(worker, wrong):
+    """The refusal of ``worker`` for the ``(key, client's, worker's)`` differences ``wrong``."""
+    what = "; ".join(f"{key} {theirs} on the worker, {ours} here" for key, ours, theirs in wrong)
+    return (f"worker {worker} runs a different engine or dependencies ({what}): install the same "
+            "checkout and the pinned requirements there, or leave that worker out")
 
 
 def mismatches(local, remote):

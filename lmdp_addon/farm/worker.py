@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import versions
+
 #: Recipes set up in this worker process: {Dask key: (recipe, tracer or build)}, the most
 #: recent last; and the bakes' jobs (``driver.UnitJob``) unpickled here, {Dask key: job}.
 WORKER_RECIPES = OrderedDict()
@@ -35,11 +37,13 @@ class BakeRecipe:
     settings  :class:`~lmdp_addon.settings.Settings`
     lmdp      the solved stages (``scene``, ``states``, ``dynamics`` without its ray caster,
               ``lmdp``, ``solution``), or None (UNGUIDED)
+    engine    the client's ``versions.probe()`` the worker must match
     """
 
     scene: object
     settings: object
     lmdp: object = None
+    engine: dict = None
 
     def set_up(self):
         from ..bake.driver import make_tracer
@@ -50,7 +54,8 @@ class BakeRecipe:
 @dataclass
 class BuildRecipe:
     """What every batch of the build needs: the arguments of ``dynamics._DynamicsBuild`` and
-    the client's batch size (points per batch: the batches' bounds are the client's)."""
+    the client's batch size (points per batch: the batches' bounds are the client's), and the
+    client's ``versions.probe()`` the worker must match."""
 
     scene: object
     states: object
@@ -59,6 +64,7 @@ class BuildRecipe:
     exact_nearest: bool
     light_samples: int
     points_per_batch: int
+    engine: dict = None
 
     def set_up(self):
         from ..model.dynamics import _DynamicsBuild
@@ -106,6 +112,7 @@ def set_up(key, blob):
         if not WORKER_RECIPES:
             tune_allocator()
         recipe = pickle.loads(blob)
+        versions.check_engine(recipe.engine)
         return recipe, recipe.set_up()
     return _cached(WORKER_RECIPES, key, make)
 

@@ -20,6 +20,7 @@ from lmdp_addon.settings import Settings
 
 from lmdp_addon import farm as farm_api
 from lmdp_addon.farm.cluster import FarmError, import_distributed
+from lmdp_addon.farm.versions import EngineMismatch
 
 NAMES = ["Floor", "TallBox", "LeftWall"]
 
@@ -155,6 +156,28 @@ def test_a_worker_with_another_engine_version_is_refused(farm):
     from lmdp_addon.farm.versions import engine_version
     assert worker in message and "0123456789ab" in message and engine_version() in message
     farm.check_workers()                                 # restored: accepted again
+
+
+def test_a_worker_that_changes_after_the_connect_check_fails_the_bake(cornell, solved, farm, many_units):
+    client = farm.client
+    worker = sorted(client.scheduler_info(n_workers=-1)["workers"])[0]
+
+    def patch():
+        from lmdp_addon.farm import versions
+        versions._real_engine_version = versions.engine_version
+        versions.engine_version = lambda: "fedcba987654"
+
+    def restore():
+        from lmdp_addon.farm import versions
+        versions.engine_version = versions._real_engine_version
+
+    client.run(patch, workers=[worker])
+    try:
+        with pytest.raises(EngineMismatch) as caught:    # a new recipe (seed): checked on its first unit
+            farm_api.bake(cornell, NAMES, small(seed=1234), lmdp=solved, farm=farm)
+    finally:
+        client.run(restore, workers=[worker])
+    assert worker in str(caught.value) and "fedcba987654 on the worker" in str(caught.value)
 
 
 def test_a_worker_missing_a_dependency_is_refused(farm):
