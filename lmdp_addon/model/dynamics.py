@@ -30,7 +30,6 @@ No Python loop runs over rays or states: rays are generated, traced and binned i
 """
 import time
 from concurrent.futures import Future, ThreadPoolExecutor, as_completed
-from contextlib import closing, nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -332,23 +331,23 @@ class _DynamicsBuild:
         done = 0
         with self.pool:
             if runner is not None:
-                outcomes = closing(runner(starts))
+                stream = runner(starts)
             else:
                 futures = {self.pool.submit(self.trace_batch, st): b for b, st in enumerate(starts)}
-                outcomes = nullcontext((futures[f], f.result()) for f in as_completed(futures))
+                stream = ((futures[f], f.result()) for f in as_completed(futures))
             try:
-                with outcomes as stream:
-                    for b, (block, point_block, c, tt, tb) in stream:
-                        blocks[b] = block
-                        point_blocks[b] = point_block
-                        for key, value in c.items():
-                            counts[key] = counts.get(key, 0) + value
-                        t_trace += tt
-                        t_bin += tb
-                        done += point_block.shape[0]
-                        if progress is not None:
-                            progress.update(done / self.m, f"{done}/{self.m} points traced")
+                for b, (block, point_block, c, tt, tb) in stream:
+                    blocks[b] = block
+                    point_blocks[b] = point_block
+                    for key, value in c.items():
+                        counts[key] = counts.get(key, 0) + value
+                    t_trace += tt
+                    t_bin += tb
+                    done += point_block.shape[0]
+                    if progress is not None:
+                        progress.update(done / self.m, f"{done}/{self.m} points traced")
             except BaseException:
+                stream.close()                  # a farm's stream cancels its futures
                 for f in futures if runner is None else ():
                     f.cancel()
                 raise
