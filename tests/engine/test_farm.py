@@ -123,14 +123,34 @@ def test_cancel_stops_the_farm_bake_and_releases_its_tasks(cornell, solved, farm
     progress._last_message = ""
     with pytest.raises(Cancelled):
         driver.bake(cornell, NAMES, small(bake_resolution=32), lmdp=solved, farm=farm, progress=progress)
-    deadline = time.time() + 10
+    assert scheduler_tasks_drain(farm)
+
+
+def scheduler_tasks_drain(farm, seconds=10):
+    deadline = time.time() + seconds
     left = None
     while time.time() < deadline:
         left = farm.client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks))
         if left == 0:
             break
         time.sleep(0.1)
-    assert left == 0
+    return left == 0
+
+
+def test_cancel_stops_the_farm_build(cornell, farm, monkeypatch):
+    monkeypatch.setattr(dynamics_module, "RAYS_PER_BATCH", 1 << 10)
+
+    class CancelAtFirstBatch(Progress):
+        def update(self, fraction, message=""):
+            if "points traced" in message:
+                raise Cancelled("cancelled in the test")
+            super().update(fraction, message)
+
+    before = farm.traffic.units
+    with pytest.raises(Cancelled):
+        farm_api.build(cornell, small(), progress=CancelAtFirstBatch(), farm=farm)
+    assert farm.traffic.units - before >= 8           # the batches were on the farm ...
+    assert scheduler_tasks_drain(farm)                # ... and are gone
 
 
 def test_a_worker_with_another_engine_version_is_refused(farm):
