@@ -24,6 +24,6 @@ def farm_section(farm, results):
         "job scattered to every worker once (size x workers), each unit's task (function name, two keys, "
         "the unit number), and the units' results (per-batch sums of the texels). Identical: the images "
         "and the build's sparse matrices `np.array_equal` to the local ones.", "",
-        table(["where", "bake", "build", "cluster start", "scattered once", "per unit", "results back",
+        table(["where", "bake", "sample + build + solve", "cluster start", "scattered once", "per unit", "results back",
                "identical"], rows), "",
         machine_caption(results), ""])
