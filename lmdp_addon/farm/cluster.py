@@ -79,6 +79,9 @@ class Farm:
     workers    start a ``LocalCluster`` of this many worker processes (1 thread each) instead
     timeout    seconds to wait for the scheduler (:data:`CONNECT_TIMEOUT`)
 
+    A local cluster's worker processes are spawned (multiprocessing), which re-imports the main
+    script in each: keep a script's work under ``if __name__ == "__main__":``.
+
     On connect every worker runs :func:`versions.probe`; a worker with another engine version or
     other dependency versions, or missing one, is refused (:class:`FarmError` naming its address
     and both versions). A worker that joins later checks itself on its first unit of a bake or
