@@ -85,7 +85,8 @@ class Farm:
     On connect every worker runs :func:`versions.probe`; a worker with another engine version or
     other dependency versions, or missing one, is refused (:class:`FarmError` naming its address
     and both versions). A worker that joins later checks itself on its first unit of a bake or
-    build (``versions.check_engine``: the bake then fails with :class:`versions.EngineMismatch`). ``traffic`` counts the bytes sent (``units.Traffic``).
+    build (``versions.check_engine``: the bake then fails with :class:`versions.EngineMismatch`).
+    ``traffic`` counts the bytes sent (``units.Traffic``).
     """
 
     def __init__(self, scheduler=None, workers=None, timeout=CONNECT_TIMEOUT):
@@ -101,8 +102,15 @@ class Farm:
             if n < 1:
                 raise FarmError(f"a local farm needs at least 1 worker process (got {workers})")
             local_workers_import_the_engine()
-            self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                                    dashboard_address=None, silence_logs=40)
+            try:
+                self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                                        dashboard_address=None, silence_logs=40)
+            except RuntimeError as error:   # a worker process did not start
+                what = f"{n} local worker process{'es' if n > 1 else ''}"
+                raise FarmError(f"the {what} did not start ({str(error).rstrip('.')}; the reason is "
+                                "logged above): they re-import the main script, so a script that starts "
+                                "a local farm keeps its work under `if __name__ == \"__main__\":` and does "
+                                "not import bpy at its top") from error
             address = self.cluster.scheduler_address
         else:
             address = str(scheduler)
