@@ -63,7 +63,7 @@ def assert_same_matrix(a, b):
         assert np.array_equal(getattr(a, part), getattr(b, part)), part
 
 
-@pytest.mark.parametrize("mode", ["UNGUIDED", "FINAL_GATHER"])
+@pytest.mark.parametrize("mode", ["UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL"])
 def test_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved, farm, many_units, mode):
     settings = small(bake_mode=mode)
     local = driver.bake(cornell, NAMES, settings, lmdp=solved)
