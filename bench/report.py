@@ -11,6 +11,7 @@ from pathlib import Path
 from .common import DOCS, IMAGES, ROOT
 from .report_bake import bake_verdicts, case_section, default_mode_verdicts, error_method, what_is_timed
 from .report_engine import build_section, convergence_section, policy_section, solve_section
+from .report_farm import farm_section
 from .report_format import fmt_bytes, fmt_rate, fmt_s, machine_caption, table
 from .report_plots import plot_build, plot_convergence, plot_policy, plot_solve, plot_speed_error
 
@@ -91,6 +92,8 @@ def markdown(results, image_prefix):
         lines.append(convergence_section(results["convergence"], results).replace("images/", image_prefix))
     if "policy" in results:
         lines.append(policy_section(results["policy"], results).replace("images/", image_prefix))
+    if "farm" in results:
+        lines.append(farm_section(results["farm"], results))
     lines += ["## Section wall times", "",
               table(["section", "wall time"], [[k, fmt_s(v)] for k, v in meta.get("section_seconds", {}).items()]), ""]
     return "\n".join(lines).rstrip() + "\n"

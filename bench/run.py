@@ -14,6 +14,8 @@ Sections (``--sections``, default all):
                    including the 10^6-state build with its memory estimate
 * ``convergence``  the power method's ||z_i - z_{i-1}|| against λ (thesis Figures 3 and 4)
 * ``policy``       u*(k|x) of one state for several λ (thesis Figure 5)
+* ``farm``         one bake and build on a Dask LocalCluster of 1 and 2 worker processes: wall
+                   time, bytes sent, byte-identity with the local run (``bench/farm_scaling.py``)
 
 Results go to ``bench/results/<profile>/results.json`` (plus a log of every run); the report
 (``benchmarks.md`` and ``bench_*.png`` plots) is generated from that file only: the full suite
@@ -35,7 +37,7 @@ if str(ROOT) not in sys.path:
 from bench import common  # noqa: E402
 from bench.common import RESULTS, log  # noqa: E402
 
-SECTIONS = ("bake", "build", "solve", "convergence", "policy")
+SECTIONS = ("bake", "build", "solve", "convergence", "policy", "farm")
 
 
 def profiles():
@@ -190,6 +192,13 @@ def main(argv=None):
                 results[section] = getattr(engine_figures, f"run_{section}")(engine_profile, out)
             section_seconds[section] = sw.seconds
             common.write_json(out / "results.json", results)
+
+    if "farm" in sections:
+        from bench import farm_scaling
+        with common.Stopwatch() as sw:
+            results["farm"] = farm_scaling.run(name)
+        section_seconds["farm"] = sw.seconds
+        common.write_json(out / "results.json", results)
 
     results["meta"]["section_seconds"] = section_seconds
     results["meta"]["wall_seconds"] = time.perf_counter() - t0

@@ -36,8 +36,8 @@ sys.path.insert(0, HERE)
 import lmdp_extension  # noqa: E402  (needs HERE on sys.path, also under `blender --python`)
 import lmdp_pictures  # noqa: E402
 from lmdp_headless_checks import (  # noqa: E402
-    StepError, UsageError, apply_settings, carrier_objects, check_blend_file, check_output, select_only,
-    setting_items, submodule)
+    StepError, UsageError, apply_settings, carrier_objects, check_blend_file, check_farm_arguments, check_output,
+    connect_farm, select_only, setting_items, submodule)
 
 DEMO_KINDS = {"cornell": "CORNELL_BOX", "narrow_opening": "NARROW_OPENING", "plane_under_sky": "PLANE_UNDER_SKY",
               "parallel_squares": "PARALLEL_SQUARES", "heavy": "HEAVY"}
@@ -59,7 +59,8 @@ exit status:
        render or the save failed) or an internal error; summary.json's "error" says what happened
   2    bad arguments: a missing, unreadable or corrupt .blend file, an unusable --output,
        --objects naming what cannot carry states, --set with an unknown key or a bad value,
-       --demo with an unknown kind, conflicting options; nothing was computed, and when --output
+       --demo with an unknown kind, conflicting options, a --scheduler that cannot be reached or
+       whose workers run another engine; nothing was computed, and when --output
        is usable summary.json's "error" names the argument
   130  interrupted (Ctrl+C)
 An error ends the run with one line on stderr, "lmdp_headless.py: error: ...", that names the
@@ -109,6 +110,14 @@ def build_parser():
                         "map is left out of the default selection, and one named in --objects turns "
                         "the bake off, which the script says; --bake refuses it instead; --no-bake "
                         "also puts states on meshes without UV map)")
+    # -- bake farms (lmdp_addon.farm, Dask distributed)
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="run the build's ray batches and the bake's work units on the Dask "
+                        "cluster of this scheduler (e.g. tcp://host:8786; the results are byte-identical "
+                        "to a local run); each worker: PYTHONPATH=/path/to/checkout dask worker "
+                        "ADDRESS --nthreads 1")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="start a local Dask cluster of N worker processes for the run instead")
     return parser
 
 
@@ -126,6 +135,7 @@ def check_arguments(args):
         flag = "--bake" if args.bake else "--pictures"
         raise UsageError(f"--dry-run runs nothing, so {flag} would do nothing: drop one of them")
     setting_items(args.settings)
+    check_farm_arguments(args)
 
 
 def usable_output(argv):
@@ -301,6 +311,7 @@ def run(args, output, summary, cleanup):
     except Exception as error:  # the add-on's own import or registration error
         raise StepError(f"could not load the LMDP extension: {type(error).__name__}: {error}") from error
     summary["extension"] = {"module": extension, "origin": origin}
+    farm = connect_farm(args, extension, cleanup)     # before any work: refused here if unusable
     common = submodule(extension, "operators.common")
     summary["blend"], name = open_scene(args, common, preloaded)
     if os.path.isdir(os.path.join(output, f"{name}_lmdp.blend")):
@@ -323,7 +334,15 @@ def run(args, output, summary, cleanup):
     carry = "mesh carries" if len(objects) == 1 else "meshes carry"
     print(f"[LMDP] {len(objects)} {carry} the states: {', '.join(summary['objects'])}", flush=True)
     if not args.dry_run:
-        compute(args, common, extension, output, name, summary)
+        if farm is None:
+            compute(args, common, extension, output, name, summary)
+            return
+        summary["farm"] = {"scheduler": farm.address, "workers": farm.n_workers}
+        try:
+            with submodule(extension, "lmdp_addon.farm.session").use(farm):
+                compute(args, common, extension, output, name, summary)
+        finally:
+            summary["farm"]["traffic"] = farm.traffic.as_dict()
 
 
 def write_summary(output, summary):

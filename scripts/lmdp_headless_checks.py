@@ -109,6 +109,35 @@ def submodule(extension, name):
     return importlib.import_module(f"{extension}.{name}")
 
 
+# -- bake farms -----------------------------------------------------------------------------------
+def check_farm_arguments(args):
+    """--scheduler and --workers: one of them at most, a positive number of workers."""
+    if args.scheduler is not None and args.workers is not None:
+        raise UsageError("give either --scheduler (a running Dask cluster) or --workers (a local one), "
+                         "not both")
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers {args.workers}: give at least 1 worker process (or leave --workers out)")
+    if args.scheduler is not None and not args.scheduler.strip():
+        raise UsageError("--scheduler is empty: give the scheduler's address, e.g. tcp://host:8786")
+
+
+def connect_farm(args, extension, cleanup):
+    """The extension's ``lmdp_addon.farm.cluster.Farm`` for --scheduler / --workers (None
+    without them), connected and its workers' versions checked; closed by ``cleanup``. An
+    unreachable scheduler, a worker with another engine, or no dask is a :class:`UsageError`."""
+    if args.scheduler is None and args.workers is None:
+        return None
+    cluster = submodule(extension, "lmdp_addon.farm.cluster")
+    flag = f"--scheduler {args.scheduler}" if args.scheduler is not None else f"--workers {args.workers}"
+    try:
+        farm = cluster.Farm(scheduler=args.scheduler, workers=args.workers)
+    except cluster.FarmError as error:
+        raise UsageError(f"{flag}: {error}") from error
+    cleanup.append(farm.close)
+    print(f"[LMDP] bake farm: {farm.n_workers} workers at {farm.address}", flush=True)
+    return farm
+
+
 # -- settings -------------------------------------------------------------------------------------
 def _setting_value(prop, key, text):
     """``text`` as a value of the ``scene.lmdp`` property ``prop``; :class:`UsageError` if it is not one."""

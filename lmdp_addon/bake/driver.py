@@ -22,6 +22,9 @@ random numbers from ``default_rng([seed, o, b, u])``, so a bake is deterministic
 whatever the thread scheduling. Units run on a small thread pool (embree and numpy release the
 GIL); ``progress.update`` between units raises ``Cancelled`` when the user asked to stop, and
 nothing is returned.
+The same units can run on a bake farm's workers instead (``bake(..., farm=)`` or the farm in use,
+``lmdp_addon.farm``): :func:`trace_unit` is the unit's body on both paths, and the reduction in
+unit order makes the result byte-identical.
 
 Walk of one bake: :func:`bake` -> ``checks.check_bake`` (unless given its plan) ->
 :func:`make_tracer` (``guide.build_guide``, ``gather.build_gather``) -> :func:`bake_object` per
@@ -30,9 +33,12 @@ object (:func:`work_units`, ``IndirectTracer.trace`` per unit) -> ``results.Bake
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import closing, nullcontext
+from dataclasses import dataclass
 
 import numpy as np
 
+from ..farm import session as farm_session
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
 from .checks import check_bake, check_texels, object_index, object_texels
@@ -45,8 +51,9 @@ from .texels import dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
 
 # The operators read BakeResult, ObjectBake and IMAGE_SUFFIX here.
-__all__ = ["bake", "bake_object", "compose_atlas", "make_tracer", "work_units", "batch_count", "bake_threads",
-           "PATHS_PER_UNIT", "BAKE_THREADS", "MIN_UNITS", "MAX_BATCHES", "BakeResult", "ObjectBake", "IMAGE_SUFFIX"]
+__all__ = ["bake", "bake_object", "compose_atlas", "make_tracer", "work_units", "trace_unit", "UnitJob", "batch_count",
+           "bake_threads", "PATHS_PER_UNIT", "BAKE_THREADS", "MIN_UNITS", "MAX_BATCHES", "BakeResult", "ObjectBake",
+           "IMAGE_SUFFIX"]
 
 #: Most paths traced by one work unit (memory: ~0.5 KiB per path in flight, so ~64 MiB per
 #: unit). Larger units amortise the per-bounce Python overhead of the wavefront loop.
@@ -116,11 +123,12 @@ def work_units(n_texels, batches, per_batch):
 # ---- the bake of one object -------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
-                threads=None, texels=None, resolution=None):
+                threads=None, texels=None, resolution=None, runner=None):
     """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``resolution``:
     its lightmap side R (default ``settings.bake_resolution``; ``BakePlan.resolution_of``);
     ``texels``: its ``(TexelSet, triangles)`` at R if the caller has them (``BakePlan.texels``),
-    else they are rasterised here. ``threads``: default :func:`bake_threads`."""
+    else they are rasterised here. ``threads``: default :func:`bake_threads`. ``runner``: a
+    farm's unit runner (``Farm.bake_units``), None: local threads."""
     t0 = time.perf_counter()
     progress = progress if progress is not None else Progress()
     index = object_index(scene, name)
@@ -137,7 +145,7 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
             states[lo:lo + len(sub)] = guide.states_at(sub.position, sub.normal, np.full(len(sub), index))
     progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
     acc, acc2, stats = _trace_batches(tracer, ts, tris[ts.triangle], states, B, N // B, int(settings.seed),
-                                      object_number, name, progress, threads)
+                                      object_number, name, progress, threads, runner)
     del states
     value, stderr = _batch_statistics(acc, acc2, B)
     del acc, acc2
@@ -171,45 +179,82 @@ def _batch_statistics(acc, acc2, B):
     return value, np.sqrt(acc2, out=acc2).astype(np.float32)
 
 
-def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_number, name, progress, threads):
+@dataclass
+class UnitJob:
+    """The work units of one object's bake, as :func:`trace_unit` needs them (plain arrays, so a
+    farm sends them once per object: ``lmdp_addon.farm``).
+
+    texels          :class:`~lmdp_addon.bake.texels.TexelSet` of the object (n texels)
+    triangles       (n,) int64 each texel's scene triangle (its rays' offset)
+    states          (n,) int64 each texel's nearest state (-1: none)
+    units           :func:`work_units` ``(first batch, first texel, end texel)``
+    group           whole batches per unit
+    per_batch       paths per texel and batch
+    seed, object_number  the random streams' keys
+    """
+
+    texels: object
+    triangles: np.ndarray
+    states: np.ndarray
+    units: list
+    group: int
+    per_batch: int
+    seed: int
+    object_number: int
+
+
+def trace_unit(tracer, job, unit_id):
+    """``(unit_id, sums, TraceStats)`` of work unit ``unit_id`` of ``job`` traced with ``tracer``:
+    ``sums`` (group, texels of the unit, 3) float64 the sums of each batch's path values. Its
+    random numbers come from ``default_rng([seed, object_number, first batch, unit_id])`` only,
+    so the result does not depend on where or when the unit runs."""
+    units, group, per_batch = job.units, job.group, job.per_batch
+    states, triangles = job.states, job.triangles
+    b0, lo, hi = units[unit_id]
+    rng = np.random.default_rng([job.seed, job.object_number, b0, unit_id])
+    sub = job.texels.subset(slice(lo, hi))
+    k = (hi - lo) * per_batch
+    parts = []
+    for b in range(b0, b0 + group):     # the batches' starting points, one after another
+        fp = sample_footprint(sub, per_batch, rng, include_center=(b == 0))
+        u, u_mix = stratified_first_uniforms(hi - lo, per_batch, rng)
+        parts.append((fp.position.reshape(k, 3), fp.normal.reshape(k, 3), u.reshape(k, 2),
+                      u_mix.reshape(k)))
+    position, normal, u, u_mix = (np.concatenate(p) if group > 1 else p[0] for p in zip(*parts))
+    control = np.zeros((k * group, 3), np.float32) if tracer.control is not None else None
+    values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
+                              u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group),
+                              control_out=control)
+    if control is not None:              # RESIDUAL: the paths estimate f - g (residual.py)
+        values -= control
+    sums = values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64)
+    if control is not None:              # ... and the control samples E[g], ratio x as many
+        ratio = tracer.control.ratio
+        for i, b in enumerate(range(b0, b0 + group)):
+            g, cst = tracer.control.samples(tracer, sub, triangles[lo:hi], per_batch, b == 0, rng)
+            sums[i] += g / ratio
+            st.add(cst)
+    return unit_id, sums, st
+
+
+def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_number, name, progress, threads,
+                   runner=None):
     """``(Σ_b mean_b, Σ_b mean_b², TraceStats)`` over the B batches of ``per_batch`` paths of
     every texel of ``ts`` (``triangles``: each texel's scene triangle, for its rays' offset;
     ``states``: each texel's nearest state, -1: none), traced as the
-    :func:`work_units` on ``threads`` threads. Running sums keep memory O(texels), not
+    :func:`work_units` on ``threads`` threads, or by ``runner(job, unit_ids)`` (a farm's: it
+    yields :func:`trace_unit`'s outcomes in any order). Running sums keep memory O(texels), not
     O(batches x texels); they are formed in unit order, so bakes are bit-identical whatever
-    order the threads finish in."""
+    order the units finish in."""
     n_tex = len(ts)
     group, units = work_units(n_tex, B, per_batch)
     acc = np.zeros((n_tex, 3), np.float64)
     acc2 = np.zeros((n_tex, 3), np.float64)
     stats = TraceStats()
+    job = UnitJob(ts, triangles, states, units, group, per_batch, seed, object_number)
 
     def run(unit_id):
-        b0, lo, hi = units[unit_id]
-        rng = np.random.default_rng([seed, object_number, b0, unit_id])
-        sub = ts.subset(slice(lo, hi))
-        k = (hi - lo) * per_batch
-        parts = []
-        for b in range(b0, b0 + group):     # the batches' starting points, one after another
-            fp = sample_footprint(sub, per_batch, rng, include_center=(b == 0))
-            u, u_mix = stratified_first_uniforms(hi - lo, per_batch, rng)
-            parts.append((fp.position.reshape(k, 3), fp.normal.reshape(k, 3), u.reshape(k, 2),
-                          u_mix.reshape(k)))
-        position, normal, u, u_mix = (np.concatenate(p) if group > 1 else p[0] for p in zip(*parts))
-        control = np.zeros((k * group, 3), np.float32) if tracer.control is not None else None
-        values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
-                                  u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group),
-                                  control_out=control)
-        if control is not None:              # RESIDUAL: the paths estimate f - g (residual.py)
-            values -= control
-        sums = values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64)
-        if control is not None:              # ... and the control samples E[g], ratio x as many
-            ratio = tracer.control.ratio
-            for i, b in enumerate(range(b0, b0 + group)):
-                g, cst = tracer.control.samples(tracer, sub, triangles[lo:hi], per_batch, b == 0, rng)
-                sums[i] += g / ratio
-                st.add(cst)
-        return unit_id, sums, st
+        return trace_unit(tracer, job, unit_id)
 
     total = len(units)
     pending = {}
@@ -227,7 +272,11 @@ def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_num
         stats.add(st)
         progress.update(done / total, f"{name}: {done}/{total} work units")
 
-    if int(threads) <= 1:
+    if runner is not None:                   # a farm: closing the stream cancels what is left
+        with closing(runner(job, range(total))) as outcomes:
+            for done, outcome in enumerate(outcomes, start=1):
+                collect(done, outcome)
+    elif int(threads) <= 1:
         for done, unit_id in enumerate(range(total), start=1):
             collect(done, run(unit_id))
     else:
@@ -273,7 +322,7 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
 
 
 def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=None,
-         plan=None):
+         plan=None, farm=None):
     """Bake the lightmaps of the objects ``names`` of ``scene`` (module docstring).
 
     scene     :class:`~lmdp_addon.scene_arrays.SceneArrays` to trace (with UVs)
@@ -288,15 +337,18 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
               arguments: no check runs again and its texels are used (a plan whose texel checks
               are still to run gets them here first: ``checks.check_texels``, a "texels" step
               that reports progress and can be cancelled); None: :func:`check_bake` runs here once
+    farm      a :class:`lmdp_addon.farm.Farm` whose workers trace the work units (the result is
+              byte-identical); None: the farm in use in this process (``farm.session.use``), if
+              any, else ``threads`` local threads
     Returns :class:`BakeResult`. Raises the errors of :func:`check_bake`, or ``Cancelled``.
     """
     with scene.held():
         if plan is None:
             plan = check_bake(scene, names, settings, lmdp)
-        return _bake(scene, list(names), settings, lmdp, progress, precompute_seconds, threads, plan)
+        return _bake(scene, list(names), settings, lmdp, progress, precompute_seconds, threads, plan, farm)
 
 
-def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan):
+def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None):
     """:func:`bake` with the scene's derived geometry held and its plan."""
     progress = progress if progress is not None else Progress()
     check_texels(scene, plan, progress)                # when the plan still needs them
@@ -307,15 +359,17 @@ def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, p
     same = plan.resolution == int(settings.bake_resolution)
     texels = plan.texels if same else {}
     objects = []
-    for number, name in enumerate(names):
-        progress.begin(f"bake {name}")
-        index = object_index(scene, name)
-        ob = bake_object(tracer, scene, name, settings, object_number=number, guide=guide,
-                         progress=progress, threads=threads, texels=texels.get(index),
-                         resolution=plan.resolution_of(index) if same else None)
-        progress.end(f"{ob.n_texels} texels, {ob.stats.total_rays} rays in {ob.seconds:.2f} s "
-                     f"({ob.stats.total_rays / max(ob.seconds, 1e-9) / 1e6:.2f} Mrays/s)")
-        objects.append(ob)
+    farm = farm if farm is not None else farm_session.current()
+    with farm.bake_units(scene, settings, lmdp) if farm is not None else nullcontext() as runner:
+        for number, name in enumerate(names):
+            progress.begin(f"bake {name}")
+            index = object_index(scene, name)
+            ob = bake_object(tracer, scene, name, settings, object_number=number, guide=guide, progress=progress,
+                             threads=threads, texels=texels.get(index),
+                             resolution=plan.resolution_of(index) if same else None, runner=runner)
+            progress.end(f"{ob.n_texels} texels, {ob.stats.total_rays} rays in {ob.seconds:.2f} s "
+                         f"({ob.stats.total_rays / max(ob.seconds, 1e-9) / 1e6:.2f} Mrays/s)")
+            objects.append(ob)
     atlases = [compose_atlas(ATLAS_NAME, objects, int(settings.bake_margin))] if plan.atlas and objects else []
     seconds = dict(precompute_seconds or {})
     seconds["bake_setup"] = setup

@@ -36,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import BudgetError
+from ..farm import session as farm_session
 from .hemisphere import stratum_of_local_direction
 from .hits import HitClassifier
 from ..lights import EmitterSampler
@@ -212,7 +213,8 @@ def check_budget(n_points, n_strata, rays_per_stratum, budget_gb, light_samples=
 
 
 def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=None,
-                           memory_budget_gb=None, caster=None, exact_nearest=False, light_samples=32):
+                           memory_budget_gb=None, caster=None, exact_nearest=False, light_samples=32,
+                           farm=None):
     """Estimate the passive dynamics of every state by ray casting (thesis 3.1.2, eq. 3.1).
 
     With ``light_samples = K > 0`` the transitions into emitter terminals are also estimated by
@@ -233,6 +235,9 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
     ``memory_budget_gb``: when given, :func:`check_budget` runs first (callers that checked
     already, like :func:`lmdp_addon.model.pipeline.run_build`, leave it None). ``caster``: a
     :class:`~lmdp_addon.raycast.RayCaster` of ``scene`` to reuse (default: a new one).
+    ``farm``: a :class:`lmdp_addon.farm.Farm` whose workers trace the batches (the matrices are
+    byte-identical); None: the farm in use in this process (``farm.session.use``), if any, else
+    the local thread pool.
     """
     R = int(rays_per_stratum)
     if R < 1:
@@ -242,7 +247,12 @@ def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=N
                      scene.n_triangles)
     with scene.held():
         build = _DynamicsBuild(scene, states, R, seed, caster, exact_nearest, light_samples)
-        return build.run(progress)
+        farm = farm if farm is not None else farm_session.current()
+        if farm is None:
+            return build.run(progress)
+        with farm.build_batches(scene, states, R, seed, exact_nearest, light_samples,
+                                build.points_per_batch) as runner:
+            return build.run(progress, runner)
 
 
 class _DynamicsBuild:
@@ -310,8 +320,10 @@ class _DynamicsBuild:
 
     # ---- the batches ----------------------------------------------------------------------------
 
-    def run(self, progress):
-        """Trace every batch on the pool, then assemble the :class:`PassiveDynamics`."""
+    def run(self, progress, runner=None):
+        """Trace every batch on the pool (or by ``runner(starts)``, a farm's: it yields
+        ``(batch, trace_batch(starts[batch]))`` in any order), then assemble the
+        :class:`PassiveDynamics`."""
         # Batches run on a small thread pool: embree and numpy release the GIL, so tracing one
         # batch overlaps with binning another.
         starts = list(range(0, self.m, self.points_per_batch))
@@ -321,12 +333,15 @@ class _DynamicsBuild:
         t_trace = t_bin = 0.0
         done = 0
         with self.pool:
-            futures = {self.pool.submit(self.trace_batch, st): b for b, st in enumerate(starts)}
+            if runner is not None:
+                stream = runner(starts)
+            else:
+                futures = {self.pool.submit(self.trace_batch, st): b for b, st in enumerate(starts)}
+                stream = ((futures[f], f.result()) for f in as_completed(futures))
             try:
-                for future in as_completed(futures):
-                    block, point_block, c, tt, tb = future.result()
-                    blocks[futures[future]] = block
-                    point_blocks[futures[future]] = point_block
+                for b, (block, point_block, c, tt, tb) in stream:
+                    blocks[b] = block
+                    point_blocks[b] = point_block
                     for key, value in c.items():
                         counts[key] = counts.get(key, 0) + value
                     t_trace += tt
@@ -335,7 +350,8 @@ class _DynamicsBuild:
                     if progress is not None:
                         progress.update(done / self.m, f"{done}/{self.m} points traced")
             except BaseException:
-                for f in futures:
+                stream.close()                  # a farm's stream cancels its futures
+                for f in futures if runner is None else ():
                     f.cancel()
                 raise
             locator, _, t_locator = self.tables.result()
