@@ -51,6 +51,7 @@ def build(session):
     sun.data.energy, sun.data.angle = SUN_STRENGTH, np.radians(SUN_ANGLE_DEGREES)
     sun.rotation_euler = (np.radians(90.0 - SUN_ELEVATION_DEGREES), 0.0, 0.0)   # shines along -Z: from -y
     scene.collection.objects.link(sun)
+    bpy.context.view_layer.update()
     return engine_scene(session)
 
 

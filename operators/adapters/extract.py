@@ -694,7 +694,7 @@ def _colour_bakes(context, reader, warnings):
     out = {}
     view_layer = context.view_layer
     for obj in list(view_layer.objects):
-        if obj.type != 'MESH' or _is_hidden(obj, view_layer):
+        if obj is None or obj.type != 'MESH' or _is_hidden(obj, view_layer):   # None: just removed
             continue
         materials = [m for m in slot_materials(obj) if m is not None]
         for m in materials:

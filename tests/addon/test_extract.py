@@ -493,3 +493,14 @@ def test_instances_are_extracted_in_world_space(fresh_scene, extract):
                      for k in range(3))
     np.testing.assert_allclose(centres, [0.0, 2.0, 4.0], atol=1e-6)
     np.testing.assert_allclose(sa.vertices[:, 2], 1.0)
+
+
+def test_capture_right_after_an_object_is_removed(fresh_scene, extract):
+    """A script that removes an object and captures at once: the view layer still lists the
+    removed object as None until it is updated; the capture (its colour-bake pre-pass walks the
+    view layer) skips it instead of failing."""
+    assert bpy.ops.lmdp.add_demo_scene(kind='CORNELL_BOX') == {'FINISHED'}
+    bpy.data.objects.remove(bpy.data.objects["Light"])
+    meshes = [o for o in bpy.context.scene.objects if o.type == 'MESH']
+    sa = extract.extract_scene(bpy.context, meshes)
+    assert "Light" not in sa.object_names and len(sa.object_names) == len(meshes)
