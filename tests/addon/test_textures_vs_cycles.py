@@ -503,7 +503,7 @@ def test_gltf_floor_matches_cycles(fresh_scene, lmdp_ext, demo):
     """The 20 m floor, lit only indirectly by what the crate and the sphere reflect (dark and
     noisy: more samples)."""
     gltf_scene()
-    check_indirect(lmdp_ext, demo, "Plane", samples=2048, ref_samples=4096)
+    check_indirect(lmdp_ext, demo, "Plane", samples=16384, ref_samples=16384)
 
 
 def test_colour_attribute_box_in_a_lit_room_matches_cycles(fresh_scene, lmdp_ext, demo):
