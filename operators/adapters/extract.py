@@ -48,16 +48,13 @@ from . import shading
 from .bsdf_params import cycles_glossy_settings, material_lobes
 from .lightmap_uvs import chosen_uv_name
 from .materials import NODE_MULTIPLY, slot_materials
-from .world_capture import WorldReader
+from .world_capture import WorldReader, socket_source, srgb_to_linear
 
 #: Cycles' default surface (a polygon without material): Diffuse BSDF, colour 0.8.
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
 #: Object types whose evaluated geometry is a mesh.
 GEOMETRY_TYPES = {'MESH', 'CURVE', 'CURVES', 'SURFACE', 'META', 'FONT'}
 
-_BLACK = np.zeros(3)
-#: Before Blender 5.0 materials and worlds could switch their node trees off (``use_nodes``).
-_NODES_OPTIONAL = bpy.app.version < (5, 0, 0)
 
 
 @dataclass
@@ -94,18 +91,13 @@ def object_fingerprint(obj):
     return digest.hexdigest()
 
 
-def _srgb_to_linear(c):
-    c = np.asarray(c, dtype=np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
 class _MaterialReader:
-    """The world's radiance (and constant albedo / emission of node materials), with warnings;
-    meshes read their materials with :class:`.shading.ShadingReader`."""
+    """The world's radiance and the constant values of node inputs (the microfacet lobes'
+    parameters, ``bsdf_params``), with warnings; meshes read their colour, alpha and emission
+    with :class:`.shading.ShadingReader`."""
 
     def __init__(self, warnings):
         self.warnings = warnings
-        self._cache = {}
         self._image_means = {}
 
     def warn(self, message):
@@ -113,22 +105,7 @@ class _MaterialReader:
             self.warnings.append(message)
 
     # -- sockets ------------------------------------------------------------------------------
-    @staticmethod
-    def _source(socket):
-        """(node, output socket) feeding ``socket``, through reroutes and muted nodes; or None."""
-        links = [link for link in socket.links if not link.is_muted and link.is_valid]
-        while links:
-            link = links[0]
-            node, out = link.from_node, link.from_socket
-            if node.type == 'REROUTE':
-                links = [l for l in node.inputs[0].links if not l.is_muted and l.is_valid]
-                continue
-            if node.mute:
-                through = [il.from_socket for il in node.internal_links if il.to_socket == out]
-                links = [l for s in through for l in s.links if not l.is_muted and l.is_valid]
-                continue
-            return node, out
-        return None
+    _source = staticmethod(socket_source)
 
     def image_mean(self, image, equirect=False):
         """Mean linear RGB of ``image`` (rows weighted by solid angle for equirect maps)."""
@@ -141,7 +118,7 @@ class _MaterialReader:
                 h, w = table.pixels.shape[:2]
                 px = table.pixels[..., :3].astype(np.float64)
                 if table.srgb:
-                    px = _srgb_to_linear(px)
+                    px = srgb_to_linear(px)
                 if equirect:
                     lat = (np.arange(h) + 0.5) / h * np.pi - np.pi / 2
                     weight = np.cos(lat)[:, None]
@@ -190,84 +167,6 @@ class _MaterialReader:
             self.warn(f"{owner}: '{node.name}' {name} is driven by node '{source[0].name}', which "
                       f"LMDP cannot evaluate; using the socket's default value {default:g}")
         return default
-
-    # -- shaders ------------------------------------------------------------------------------
-    def shader(self, socket, owner, depth=0):
-        """(albedo (3,), emission (3,)) of the shader feeding ``socket``."""
-        source = self._source(socket)
-        if source is None:
-            return _BLACK, _BLACK
-        node, _ = source
-        t = node.type
-        if depth > 32:
-            self.warn(f"{owner}: shader graph too deep at '{node.name}'; treated as black")
-            return _BLACK, _BLACK
-        if t == 'BSDF_DIFFUSE':
-            return self.colour(node, "Color", owner), _BLACK
-        if t == 'BSDF_PRINCIPLED':
-            base = self.colour(node, "Base Color", owner)
-            metallic = self.value(node, "Metallic", owner)
-            transmission = self.value(node, "Transmission Weight", owner)
-            if transmission > 0:   # metallic and specular: bsdf_params' microfacet lobes
-                self.warn(f"{owner}: Principled BSDF '{node.name}' has Transmission {transmission:g}; "
-                          "LMDP keeps its diffuse, specular and metallic parts (no transmission)")
-            albedo = base * (1.0 - metallic) * (1.0 - transmission)
-            strength = self.value(node, "Emission Strength", owner)
-            emission = self.colour(node, "Emission Color", owner) * strength if strength else _BLACK
-            return albedo, emission
-        if t in ('EMISSION', 'BACKGROUND'):
-            return _BLACK, self.colour(node, "Color", owner) * self.value(node, "Strength", owner)
-        if t == 'MIX_SHADER':
-            fac = min(max(self.value(node, "Fac", owner), 0.0), 1.0)
-            a1, e1 = self.shader(node.inputs[1], owner, depth + 1)
-            a2, e2 = self.shader(node.inputs[2], owner, depth + 1)
-            self.warn(f"{owner}: Mix Shader '{node.name}' is approximated by the weighted average "
-                      f"of its inputs (factor {fac:g})")
-            return (1 - fac) * a1 + fac * a2, (1 - fac) * e1 + fac * e2
-        if t == 'ADD_SHADER':
-            a1, e1 = self.shader(node.inputs[0], owner, depth + 1)
-            a2, e2 = self.shader(node.inputs[1], owner, depth + 1)
-            albedo = a1 + a2
-            self.warn(f"{owner}: Add Shader '{node.name}' is approximated by the sum of its inputs"
-                      + (" (albedo clipped to 1)" if np.any(albedo > 1) else ""))
-            return np.minimum(albedo, 1.0), e1 + e2
-        if t == 'BSDF_GLOSSY':   # no diffuse part: its reflection is a microfacet lobe (bsdf_params)
-            return _BLACK, _BLACK
-        if t in ('BSDF_TRANSPARENT', 'HOLDOUT', 'BSDF_REFRACTION'):
-            self.warn(f"{owner}: '{node.name}' ({node.bl_label}) cannot be modelled; the surface "
-                      "is treated as black (absorbing)")
-            return _BLACK, _BLACK
-        if "Color" in node.inputs or "Base Color" in node.inputs:
-            name = "Base Color" if "Base Color" in node.inputs else "Color"
-            self.warn(f"{owner}: '{node.name}' ({node.bl_label}) is treated as a diffuse surface "
-                      f"with its {name} as albedo")
-            return self.colour(node, name, owner), _BLACK
-        self.warn(f"{owner}: shader node '{node.name}' ({node.bl_label}) is not supported; using "
-                  f"Cycles' default grey {DEFAULT_ALBEDO[0]:g}")
-        return np.array(DEFAULT_ALBEDO), _BLACK
-
-    def material(self, mat):
-        """(albedo, emission) of a material (None: Cycles' default surface)."""
-        if mat is None:
-            return np.array(DEFAULT_ALBEDO), _BLACK
-        key = mat.name_full if hasattr(mat, "name_full") else mat.name
-        if key not in self._cache:
-            owner = f"Material '{mat.name}'"
-            tree = mat.node_tree
-            output = tree.get_output_node('CYCLES') if tree is not None else None
-            if tree is None or (_NODES_OPTIONAL and not mat.use_nodes):
-                # Blender < 5.0 without nodes: Cycles shades the viewport colour as a Diffuse BSDF.
-                albedo, emission = np.array(mat.diffuse_color[:3], dtype=np.float64), _BLACK
-            elif output is None or self._source(output.inputs["Surface"]) is None:
-                self.warn(f"{owner} has no shader connected to a Material Output: Cycles renders "
-                          "it black, so LMDP uses albedo 0 (no emission)")
-                albedo, emission = _BLACK, _BLACK
-            else:
-                albedo, emission = self.shader(output.inputs["Surface"], owner)
-            albedo = np.clip(np.asarray(albedo, dtype=np.float64), 0.0, 1.0)
-            emission = np.maximum(np.asarray(emission, dtype=np.float64), 0.0)
-            self._cache[key] = (albedo, emission)
-        return self._cache[key]
 
     def world(self, world):
         """``(world_radiance (3,), environment or None)`` of the world seen by escaping rays

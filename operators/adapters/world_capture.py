@@ -45,11 +45,12 @@ _INTERPOLATION = {'Linear': "LINEAR", 'Closest': "CLOSEST", 'Cubic': "LINEAR", '
 _DIRECTION_COORDINATES = {'Generated', 'Object'}
 
 
-def _srgb_to_linear(c):
+def srgb_to_linear(c):
+    """The sRGB transfer function inverted, elementwise (float64 in, float64 out)."""
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
-def _source(socket):
+def socket_source(socket):
     """(node, output socket) feeding ``socket``, through reroutes and muted nodes; or None."""
     links = [link for link in socket.links if not link.is_muted and link.is_valid]
     while links:
@@ -77,7 +78,7 @@ def image_radiance(image):
     px = px.reshape(h, w, c)
     rgb = px[..., :3] if c >= 3 else np.repeat(px[..., :1], 3, axis=-1)
     if not image.is_float and image.colorspace_settings.name == 'sRGB':
-        rgb = _srgb_to_linear(rgb.astype(np.float64))
+        rgb = srgb_to_linear(rgb.astype(np.float64))
     return np.ascontiguousarray(rgb, dtype=np.float32)
 
 
@@ -144,13 +145,13 @@ class WorldReader:
         output = tree.get_output_node('CYCLES')
         if output is None:
             return _BLACK, None
-        source = _source(output.inputs["Surface"])
+        source = socket_source(output.inputs["Surface"])
         if source is None:
             return _BLACK, None
         node = source[0]
-        if node.type == 'BACKGROUND' and _source(node.inputs["Strength"]) is None:
+        if node.type == 'BACKGROUND' and socket_source(node.inputs["Strength"]) is None:
             strength = float(node.inputs["Strength"].default_value)
-            colour = _source(node.inputs["Color"])
+            colour = socket_source(node.inputs["Color"])
             if colour is None:
                 return np.maximum(np.array(node.inputs["Color"].default_value[:3], dtype=np.float64)
                                   * strength, 0.0), None
@@ -171,14 +172,14 @@ class WorldReader:
         when only a render of the world can evaluate it."""
         if tex.type != 'TEX_ENVIRONMENT' or tex.image is None or tex.projection != 'EQUIRECTANGULAR':
             return None
-        vector = _source(tex.inputs["Vector"])
+        vector = socket_source(tex.inputs["Vector"])
         rotation, warp = np.eye(3), None
         if vector is not None:
             node = vector[0]
             if node.type == 'MAPPING':
-                if any(_source(s) is not None for s in node.inputs if s.name != "Vector"):
+                if any(socket_source(s) is not None for s in node.inputs if s.name != "Vector"):
                     return None
-                inner = _source(node.inputs["Vector"])
+                inner = socket_source(node.inputs["Vector"])
                 if inner is not None and not _is_direction(inner):
                     return None
                 rotation, warp = _mapping_function(node)
