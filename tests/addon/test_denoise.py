@@ -151,6 +151,28 @@ def test_denoising_does_not_depend_on_the_thread_count(fresh_scene, lmdp_ext):
     assert np.abs(one - color).mean() > 0.05 * color.mean()     # it did denoise
 
 
+def denoised_against_cycles(lmdp_ext, refs, resolution, seeds, label, **settings):
+    """Bakes the Floor (UNGUIDED, 64 samples, denoised, ``settings``) with each of ``seeds``
+    against Cycles' two-seed bake ``refs`` of the same texels: asserts each denoised relative
+    RMSE at least 3x below the raw one's and returns the mean of the denoised biases."""
+    from test_bake_vs_cycles import lmdp_bake
+    biases = []
+    for seed in seeds:
+        ob = lmdp_bake(lmdp_ext, "Floor", "UNGUIDED", resolution, SAMPLES, seed=seed, denoise=True, **settings)
+        ts = ob.texels
+        cyc = refs.mean(axis=0)[ts.row, ts.col].astype(np.float64)
+        var_c = ((refs[0] - refs[1]) ** 2 / 4.0)[ts.row, ts.col]
+        raw_rmse, raw_bias = errors(ob.value.astype(np.float64), cyc, var_c)
+        den_rmse, den_bias = errors(ob.denoised_value.astype(np.float64), cyc, var_c)
+        print(f"seed {seed}: {label} at {resolution} px against Cycles: raw rel. RMSE {raw_rmse:.4f} "
+              f"(bias {raw_bias * 100:+.2f} %), denoised {den_rmse:.4f} (bias {den_bias * 100:+.2f} %): "
+              f"{raw_rmse / den_rmse:.1f}x lower")
+        assert raw_rmse >= 3.0 * den_rmse
+        biases.append(den_bias)
+    print(f"denoised bias over the seeds {np.mean(biases) * 100:+.2f} %")
+    return float(np.mean(biases))
+
+
 @pytest.mark.slow
 def test_denoised_cornell_floor_against_cycles(fresh_scene, lmdp_ext):
     """Issue 21's figures against Cycles itself: at 64 samples the denoised Cornell floor (64 px)
@@ -158,25 +180,12 @@ def test_denoised_cornell_floor_against_cycles(fresh_scene, lmdp_ext):
     from the two seeds, taken out): relative RMSE at least 3x below the raw lightmap's, and bias
     under 1 %, the bias averaged over four bake seeds (one 64-sample bake's mean has a standard
     error of about 0.6 % on its own)."""
-    from test_bake_vs_cycles import build, lmdp_bake, reference
+    from test_bake_vs_cycles import build, reference
     demo = lmdp_ext.sub("operators.adapters.demo_scenes")
     build('CORNELL_BOX', lmdp_ext)
     refs = reference(lmdp_ext, demo, "Floor", 64, 4096)
-    biases = []
-    for seed in (3, 4, 5, 6):
-        ob = lmdp_bake(lmdp_ext, "Floor", "UNGUIDED", 64, SAMPLES, seed=seed, denoise=True)
-        ts = ob.texels
-        cyc = refs.mean(axis=0)[ts.row, ts.col].astype(np.float64)
-        var_c = ((refs[0] - refs[1]) ** 2 / 4.0)[ts.row, ts.col]
-        raw_rmse, raw_bias = errors(ob.value.astype(np.float64), cyc, var_c)
-        den_rmse, den_bias = errors(ob.denoised_value.astype(np.float64), cyc, var_c)
-        print(f"seed {seed}: Cornell floor at 64 px against Cycles: raw rel. RMSE {raw_rmse:.4f} (bias "
-              f"{raw_bias * 100:+.2f} %), denoised {den_rmse:.4f} (bias {den_bias * 100:+.2f} %): "
-              f"{raw_rmse / den_rmse:.1f}x lower")
-        assert raw_rmse >= 3.0 * den_rmse
-        biases.append(den_bias)
-    print(f"denoised bias over the seeds {np.mean(biases) * 100:+.2f} %")
-    assert abs(np.mean(biases)) < 0.01
+    bias = denoised_against_cycles(lmdp_ext, refs, 64, (3, 4, 5, 6), "Cornell floor")
+    assert abs(bias) < 0.01
 
 
 @pytest.mark.slow
@@ -187,24 +196,11 @@ def test_denoised_checker_floor_against_cycles(fresh_scene, lmdp_ext):
     below the raw one's, and the bias, averaged over two bake seeds, under 1 %. (At 64 px the
     gain is 2.0x: OIDN has too few texels per island there.)"""
     from test_bake_content import checker_floor, reference
-    from test_bake_vs_cycles import build, lmdp_bake
+    from test_bake_vs_cycles import build
     demo = lmdp_ext.sub("operators.adapters.demo_scenes")
     build('CORNELL_BOX', lmdp_ext)
     checker_floor()
     refs = reference(lmdp_ext, demo, "Floor", ('DIRECT', 'INDIRECT', 'COLOR'), resolution=128, samples=4096)
-    biases = []
-    for seed in (3, 4):
-        ob = lmdp_bake(lmdp_ext, "Floor", "UNGUIDED", 128, SAMPLES, seed=seed, denoise=True,
-                       bake_content='DIRECT_INDIRECT', multiply_color=True)
-        ts = ob.texels
-        cyc = refs.mean(axis=0)[ts.row, ts.col].astype(np.float64)
-        var_c = ((refs[0] - refs[1]) ** 2 / 4.0)[ts.row, ts.col]
-        raw_rmse, raw_bias = errors(ob.value.astype(np.float64), cyc, var_c)
-        den_rmse, den_bias = errors(ob.denoised_value.astype(np.float64), cyc, var_c)
-        print(f"seed {seed}: checker floor (D + I) x colour at 128 px against Cycles: raw rel. RMSE {raw_rmse:.4f} "
-              f"(bias {raw_bias * 100:+.2f} %), denoised {den_rmse:.4f} (bias {den_bias * 100:+.2f} %): "
-              f"{raw_rmse / den_rmse:.1f}x lower")
-        assert raw_rmse >= 3.0 * den_rmse
-        biases.append(den_bias)
-    print(f"denoised bias over the seeds {np.mean(biases) * 100:+.2f} %")
-    assert abs(np.mean(biases)) < 0.01
+    bias = denoised_against_cycles(lmdp_ext, refs, 128, (3, 4), "checker floor (D + I) x colour",
+                                   bake_content='DIRECT_INDIRECT', multiply_color=True)
+    assert abs(bias) < 0.01
