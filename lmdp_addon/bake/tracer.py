@@ -210,6 +210,7 @@ class IndirectTracer:
         gnrm = nrm
         if self.smooth and triangles is not None:
             nrm, gnrm = self._start_normals(pos, nrm, np.asarray(triangles, dtype=np.int64))
+        colour0 = None       # the diffuse colour at x (zero_colour, multiply_color)
         if self.zero_colour and triangles is not None:
             # Cycles' DIFFUSE INDIRECT pass is divided by the diffuse colour at x (albedo x
             # alpha); in channels where that colour is 0 it takes the others' (below).
@@ -334,19 +335,14 @@ class IndirectTracer:
         if self.content.multiply_color:   # Cycles' COLOR filter: times the diffuse colour at x
             if triangles is None:
                 raise ValueError("multiply_color needs the start points' triangles")
-            times_color(L, self._start_colour(start, np.asarray(triangles, dtype=np.int64)))
+            times_color(L, colour0 if colour0 is not None
+                        else self._start_colour(start, np.asarray(triangles, dtype=np.int64)))
         return L, stats
 
     def _start_colour(self, pos, triangles):
         """(k, 3) diffuse colour (albedo x alpha) of the start points ``pos`` on ``triangles``."""
         t = triangles
-        e1, e2 = self.edge1[t].astype(np.float64), self.edge2[t].astype(np.float64)
-        r = pos.astype(np.float64) - self.corner0[t]
-        a, b, c = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-        p, q = (e1 * r).sum(1), (e2 * r).sum(1)
-        det = a * c - b * b
-        det = np.where(det != 0, det, 1.0)
-        bu, bv = ((c * p - b * q) / det).astype(np.float32), ((a * q - b * p) / det).astype(np.float32)
+        bu, bv = (x.astype(np.float32) for x in self._barycentrics(pos, t))
         colour = self.scene.albedo_at(t, bu, bv)
         if self.transparency is not None:
             colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
@@ -376,6 +372,17 @@ class IndirectTracer:
             direct = direct + world_direct
         return direct
 
+    def _barycentrics(self, pos, t):
+        """Barycentrics ``(bu, bv)`` (k,) float64 of the points ``pos`` (k, 3) in the planes of
+        triangles ``t`` (least squares on the edges; 0 for degenerate triangles)."""
+        e1, e2 = self.edge1[t].astype(np.float64), self.edge2[t].astype(np.float64)
+        r = pos.astype(np.float64) - self.corner0[t]
+        a, b, c = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+        p, q = (e1 * r).sum(1), (e2 * r).sum(1)
+        det = a * c - b * b
+        det = np.where(det != 0, det, 1.0)
+        return (c * p - b * q) / det, (a * q - b * p) / det
+
     def _start_normals(self, pos, normals, triangles):
         """Shading and geometric normals ``(N, Ng)`` (k, 3) float32 of the start points ``pos``
         on ``triangles``, on the side of the given ``normals`` (the baked side): Ng the face
@@ -388,14 +395,7 @@ class IndirectTracer:
         nrm = ng.copy()
         if len(smooth):
             t = triangles[smooth]
-            e1 = self.edge1[t].astype(np.float64)
-            e2 = self.edge2[t].astype(np.float64)
-            r = pos[smooth].astype(np.float64) - self.corner0[t]
-            a, b, c = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-            p, q = (e1 * r).sum(1), (e2 * r).sum(1)
-            det = a * c - b * b
-            det = np.where(det != 0, det, 1.0)
-            bu, bv = (c * p - b * q) / det, (a * q - b * p) / det
+            bu, bv = self._barycentrics(pos[smooth], t)
             nrm[smooth] = self.scene.shading_normals(t, bu, bv, side=side[smooth])
         return nrm, ng
 
