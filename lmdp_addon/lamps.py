@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .sampling import spherical_triangle_sample, spherical_triangle_solid_angle
+from .transparency import reaches
 
 INV_PI = 1.0 / np.pi
 POINT, SPOT, SUN, AREA = 0, 1, 2, 3
@@ -410,7 +411,7 @@ class Lamps:
             valid &= np.einsum("ij,ij->i", np.asarray(geometric, dtype=np.float64)[owner], d) > 0
         ok = np.flatnonzero(valid)
         passed, rays = self._visible(caster, lifted[owner[ok]], d[ok], dist[ok], lamp[ok], transparency)
-        seen = (passed.max(axis=1) if passed.ndim == 2 else passed) > 0
+        seen = reaches(passed)
         ok, passed = ok[seen], passed[seen]
         value = self.emission[lamp[ok]] * (weight[ok] * cos[ok] * INV_PI)[:, None]
         if bsdf is not None:     # glossy points: f cos of their BSDF (light sampling alone, no MIS)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .sampling import GOLDEN, dot, dot3, rows, spherical_triangle_sample, spherical_triangle_solid_angle
-from .transparency import Transparency
+from .transparency import Transparency, reaches
 
 INV_PI = 1.0 / np.pi
 
@@ -218,7 +218,7 @@ class EmitterSampler:
             vis, passed = ok[~caster.occluded(rows(origin, ok), rows(dl, ok), tmax)], None
         else:
             T = self.transparency.transmittance(caster, rows(origin, ok), rows(dl, ok), tmax)
-            seen = (T.max(axis=1) if T.ndim == 2 else T) > 0
+            seen = reaches(T)
             vis, passed = ok[seen], T[seen]
         if len(vis) == 0:
             return out, len(ok)

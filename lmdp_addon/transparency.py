@@ -24,6 +24,13 @@ from .sampling import rows
 ABSORBED = -2
 
 
+def reaches(transmitted):
+    """(k,) bool: the shadow rays whose transmittance (:meth:`Transparency.transmittance`,
+    (k,) or (k, 3) when tinted) lets some light through."""
+    t = np.asarray(transmitted)
+    return (t.max(axis=1) if t.ndim == 2 else t) > 0
+
+
 class Transparency:
     """The transparent triangles of a scene and the ray loops through them."""
 

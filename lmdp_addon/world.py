@@ -31,6 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .transparency import reaches
+
 TWO_PI_SQUARED = 2.0 * np.pi * np.pi
 #: Equal-area world bins of the LMDP's directional world terminal: bands of equal cos θ times
 #: sectors of equal φ (each 4π / (Z Φ) sr).
@@ -234,7 +236,7 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
         vis, passed = ok[~blocked], None
     else:
         T = transparency.transmittance(caster, origin, d[ok], np.full(len(ok), np.inf, np.float32))
-        seen = (T.max(axis=1) if T.ndim == 2 else T) > 0
+        seen = reaches(T)
         vis, passed = ok[seen], T[seen]
     q = cos[vis] * np.float32(1.0 / np.pi)
     weight = q / (p[vis] + q) if mis else q / p[vis]
