@@ -28,10 +28,16 @@ and divided by its probability), so a vertex's estimate of the lamps' direct lig
 
     D_lamps(y) = Σ_l (1/π) ∫_l L_l(ω) max(n_y · ω, 0) dω
 
-is unbiased. The lamps are not geometry: BSDF-sampled rays never hit
-them (Cycles' lights do not occlude either) and the lamps' light comes from light sampling
-alone, so no MIS weight is needed (unbiased, if noisier than Cycles' MIS very close to a big
-sphere lamp).
+is unbiased. Lamps with a body (a radius, an area, a sun's angle) and Cycles' Multiple
+Importance on (``mis``, :attr:`Lamps.hittable`) are hit by BSDF-sampled rays as well, as
+Cycles' ``lights_intersect`` / ``integrate_distant_lights`` find them (``lamp_hits``); there the
+two estimates are combined by the power heuristic (Veach 1997, Cycles' ``power_heuristic``): the
+light sample is weighted ``p_L² / (p_L² + q²)`` (``next_event(mis=True)``), the hit
+``q² / (q² + p_L²)``, with ``p_L`` the
+solid-angle density of :meth:`Lamps.connect` times the lamp's selection probability
+(:meth:`Lamps.pdf`, :meth:`Lamps.selection`) and q the density of the BSDF ray. Lamps are not
+geometry: they occlude nothing and a ray that crosses one goes on (Cycles counts the crossing as
+a transparent bounce, ``shade_light.h``).
 
 In the LMDP (thesis 3.1.2-3.1.3) every lamp is a terminal state whose desirability z_T is its
 ``emission`` (the radiance of a lamp with a body; the intensity W/sr of a delta point / spot;
@@ -122,6 +128,9 @@ class Lamps:
     strength     (L, 3) colour x power x 2^exposure: W (point, spot), W/m² (sun)
     normalize    (L,) bool: Cycles' ``normalize`` (power spread over the lamp's area)
     cast_shadow  (L,) bool: ``use_shadow``
+    mis          (L,) bool: Cycles' Multiple Importance (``light.cycles.
+                 use_multiple_importance_sampling``): BSDF rays hit the lamp if it has a body
+                 (:attr:`hittable`); it changes only the noise, so it is not in :meth:`arrays`
     """
 
     names: list = field(default_factory=list)
@@ -140,6 +149,7 @@ class Lamps:
     extent_v: np.ndarray = None
     ellipse: np.ndarray = None
     spread: np.ndarray = None
+    mis: np.ndarray = None
 
     def __post_init__(self):
         L = len(self.names)
@@ -178,6 +188,12 @@ class Lamps:
         self.spot_cos_half = np.cos(0.5 * self.spot_size)
         with np.errstate(divide="ignore"):
             self.spot_smooth = 1.0 / ((1.0 - self.spot_cos_half) * self.spot_blend)
+        self.mis = column(self.mis, True, bool)
+        #: (L,) bool: lamps BSDF rays hit (Cycles' ``SHADER_USE_MIS``: a point / spot lamp of
+        #: radius > 0, an area light, a sun of angle > 0; with ``mis`` on)
+        body = np.where(self.kind == SUN, self.angle > 0,
+                        np.where(self.kind == AREA, self.area > 0, self.radius > 0))
+        self.hittable = self.mis & body
 
     def __len__(self):
         return len(self.names)
@@ -375,10 +391,88 @@ class Lamps:
         w = np.where(front, self.area[lamp] * cos_l / np.where(t > 0, t, 1.0) ** 2 * atten, 0.0)
         return di, t, w
 
-    def next_event(self, points, normals, rng, caster, lift=None, geometric=None, transparency=None, bsdf=None):
+    # ---- densities and radiance of a direction (MIS with BSDF rays) -----------------------------
+    def pdf(self, origins, normals, lamp, d, t):
+        """Solid-angle density (k,) with which :meth:`connect` draws the direction ``d (k, 3)``
+        (unit, float64) from ``origins (k, 3)`` (normals ``(k, 3)``) to lamp ``lamp (k,)``, the
+        lamp's surface ``t (k,)`` away along it (unused for suns); the selection probability
+        is not included (:meth:`selection`). Delta lamps give inf; the caller makes sure ``d``
+        reaches the lamp."""
+        o = np.asarray(origins, dtype=np.float64)
+        d = np.asarray(d, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64)
+        k = len(lamp)
+        out = np.full(k, np.inf)
+        kind = self.kind[lamp]
+        # suns: uniform in the cone of half-angle θ = angle / 2
+        s = np.flatnonzero((kind == SUN) & (self.angle[lamp] > 0))
+        if len(s):
+            out[s] = 1.0 / (2.0 * np.pi * 2.0 * np.sin(0.25 * self.angle[lamp[s]]) ** 2)
+        # area lights: uniform on the shape (t² / (A cos θ_l)) or, rectangles close by, in Ω
+        a = np.flatnonzero(kind == AREA)
+        if len(a):
+            la, oa = lamp[a], o[a]
+            cos_l = -np.einsum("ij,ij->i", d[a], self.axis[la])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out[a] = np.where(cos_l > 0, t[a] ** 2 / (self.area[la] * cos_l), np.inf)
+            half = 0.5 * (np.linalg.norm(self.extent_u[la], axis=1) ** 2 + np.linalg.norm(self.extent_v[la], axis=1) ** 2)
+            d_plane = np.einsum("ij,ij->i", oa - self.position[la], self.axis[la])
+            solid = np.flatnonzero(~self.ellipse[la] & (2.0 * half > d_plane * d_plane) & (d_plane > 0))
+            if len(solid):
+                ls, c = la[solid], self.position[la[solid]] - oa[solid]
+                eu, ev = 0.5 * self.extent_u[ls], 0.5 * self.extent_v[ls]
+                p00, p10, p11, p01 = c - eu - ev, c + eu - ev, c + eu + ev, c - eu + ev
+                omega = (spherical_triangle_solid_angle(np.stack([p00, p10, p11], axis=1))
+                         + spherical_triangle_solid_angle(np.stack([p00, p11, p01], axis=1)))
+                out[a[solid]] = np.where(omega > 0, 1.0 / np.where(omega > 0, omega, 1.0), np.inf)
+        # point and spot lamps of radius r: spheres (a cone outside, cosine inside) or disks
+        p = np.flatnonzero((kind != SUN) & (kind != AREA) & (self.radius[lamp] > 0))
+        if len(p):
+            lp = lamp[p]
+            r = self.radius[lp]
+            to_c = self.position[lp] - o[p]
+            dc = np.linalg.norm(to_c, axis=1)
+            sph = self.sphere[lp]
+            omc = _sin_sqr_to_one_minus_cos((r / np.maximum(dc, 1e-300)) ** 2)
+            cos_n = np.einsum("ij,ij->i", d[p], np.asarray(normals, dtype=np.float64)[p])
+            cos_l = np.abs(np.einsum("ij,ij->i", to_c, d[p])) / np.maximum(dc, 1e-300)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inside = np.where(cos_n > 0, np.pi / cos_n, np.inf)
+                disk = np.where(cos_l > 0, t[p] ** 2 / (np.pi * r * r * cos_l), np.inf)
+                out[p] = np.where(sph, np.where(dc > r, 1.0 / (2.0 * np.pi * omc), 1.0 / inside), disk)
+        return out
+
+    def radiance(self, lamp, origins, d):
+        """Radiance (k, 3) that lamp ``lamp (k,)`` sends along ``d (k, 3)`` (unit, from the
+        receivers ``origins (k, 3)`` towards the lamp): :attr:`emission` x a spot's cone mask
+        (not inside its sphere) x an area light's spread attenuation, the integrand whose
+        :meth:`connect` weight is ``mask / pdf``."""
+        d = np.asarray(d, dtype=np.float64)
+        factor = np.ones(len(lamp))
+        kind = self.kind[lamp]
+        a = np.flatnonzero(kind == AREA)
+        if len(a):
+            cos_l = -np.einsum("ij,ij->i", d[a], self.axis[lamp[a]])
+            factor[a] = np.where(cos_l > 0, self._spread_attenuation(np.where(cos_l > 0, cos_l, 1.0), lamp[a]), 0.0)
+        sp = np.flatnonzero(kind == SPOT)
+        if len(sp):
+            ls = lamp[sp]
+            x = -np.einsum("ij,ij->i", d[sp], self.axis[ls]) - self.spot_cos_half[ls]
+            smooth = self.spot_smooth[ls]
+            mask = np.where(np.isinf(smooth), (x > 0).astype(np.float64),
+                            _smoothstep(x * np.where(np.isinf(smooth), 0.0, smooth)))
+            dc = np.linalg.norm(self.position[ls] - np.asarray(origins, dtype=np.float64)[sp], axis=1)
+            factor[sp] = np.where(self.sphere[ls] & (dc <= self.radius[ls]), 1.0, mask)
+        return self.emission[lamp] * factor[:, None]
+
+    def next_event(self, points, normals, rng, caster, lift=None, geometric=None, transparency=None, bsdf=None,
+                   mis=False):
         """``(values (k, 3) float32, shadow rays)``: the lamps' direct light D(y) = (1/π) ∫ L
-        cos θ dω at surface points y (one sample of every lamp, light sampling alone: BSDF rays
-        never hit lamps, no MIS). ``caster``, ``lift`` and ``geometric`` as
+        cos θ dω at surface points y (one sample of every lamp, light sampling alone), or with
+        ``mis`` its light-sampling half: samples of :attr:`hittable` lamps weighted
+        ``p_L² / (p_L² + q²)`` (p_L = :meth:`pdf` x the selection probability, q = cos θ / π, the
+        BSDF density at the points of ``bsdf``), the half that ``lamp_hits.emission_hits``
+        completes for rays sampled at the same points. ``caster``, ``lift`` and ``geometric`` as
         :meth:`~lmdp_addon.lights.EmitterSampler.next_event`: shadow rays leave the points
         lifted along ``geometric`` (default ``normals``) by ``lift (k,)``, directions below the
         geometric surface give 0; ``transparency`` (:class:`~lmdp_addon.transparency.Transparency`
@@ -394,6 +488,7 @@ class Lamps:
                else np.asarray(lift, dtype=np.float32).reshape(-1, 1))
         lifted = (points + eps * (normals if geometric is None else geometric)).astype(np.float64)
         nrm = np.asarray(normals, dtype=np.float64)
+        prob = None
         if L <= ALL_LAMPS:
             owner = np.repeat(np.arange(k), L)
             lamp = np.tile(np.arange(L), k)
@@ -414,11 +509,21 @@ class Lamps:
         seen = reaches(passed)
         ok, passed = ok[seen], passed[seen]
         value = self.emission[lamp[ok]] * (weight[ok] * cos[ok] * INV_PI)[:, None]
-        if bsdf is not None:     # glossy points: f cos of their BSDF (light sampling alone, no MIS)
+        q = cos[ok] * INV_PI      # the density of the BSDF rays that may hit the lamp
+        if bsdf is not None:     # glossy points: f cos of their BSDF and its density
             g = np.flatnonzero(bsdf.mask[owner[ok]])
             if len(g):
-                f_cos, _ = bsdf.eval_at(owner[ok[g]], d[ok[g]].astype(np.float32))
+                f_cos, p_bsdf = bsdf.eval_at(owner[ok[g]], d[ok[g]].astype(np.float32))
                 value[g] = self.emission[lamp[ok[g]]] * (weight[ok[g], None] * np.asarray(f_cos, np.float64))
+                q[g] = p_bsdf
+        if mis:
+            h = np.flatnonzero(self.hittable[lamp[ok]])
+            if len(h):
+                oh = ok[h]
+                p_l = self.pdf(lifted[owner[oh]], nrm[owner[oh]], lamp[oh], d[oh], dist[oh])
+                if prob is not None:
+                    p_l = p_l * prob[oh]
+                value[h] *= (p_l * p_l / (p_l * p_l + q[h] * q[h]))[:, None]
         value = value * (passed if passed.ndim == 2 else passed[:, None])
         for ch in range(3):
             out[:, ch] = np.bincount(owner[ok], weights=value[:, ch], minlength=k)
@@ -428,11 +533,21 @@ class Lamps:
 
     def choose(self, origins, normals, u):
         """One lamp per point for scenes of many lamps: ``(lamp (k,), probability (k,))`` drawn
-        with ``u (k,)`` from the mixture ``½ e_l / Σ e + ½ / L``, e_l the luminance each lamp
-        would give without shadows if it were concentrated at its centre (its direction, for a
-        sun). The uniform half keeps every lamp's probability above 1/(2L), so the estimate
-        stays unbiased where the centre estimate is 0 but part of a lamp shines."""
+        with ``u (k,)`` from :meth:`selection`."""
         k, L = len(origins), len(self.names)
+        p = self.selection(origins, normals)
+        cdf = np.cumsum(p, axis=1)
+        lamp = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), L - 1)
+        return lamp, p[np.arange(k), lamp]
+
+    def selection(self, origins, normals):
+        """(k, L) probability of each lamp being the one sampled at ``origins (k, 3)`` with
+        normals ``(k, 3)`` in scenes of more than :data:`ALL_LAMPS` lamps: the mixture
+        ``½ e_l / Σ e + ½ / L``, e_l the luminance each lamp would give without shadows if it
+        were concentrated at its centre (its direction, for a sun). The uniform half keeps every
+        lamp's probability above 1/(2L), so the estimate stays unbiased where the centre
+        estimate is 0 but part of a lamp shines."""
+        L = len(self.names)
         lum = self.emission @ LUMINANCE
         to_c = self.position[None, :, :] - origins[:, None, :]
         d2 = np.maximum(np.einsum("kli,kli->kl", to_c, to_c), 1e-12)
@@ -452,10 +567,7 @@ class Lamps:
             est = np.where(sun, lum * np.where(self.angle > 0, np.pi * np.sin(0.5 * self.angle) ** 2, 1.0) * cos_sun,
                            est)
         total = est.sum(axis=1, keepdims=True)
-        p = 0.5 / L + 0.5 * np.where(total > 0, est / np.where(total > 0, total, 1.0), 1.0 / L)
-        cdf = np.cumsum(p, axis=1)
-        lamp = np.minimum((cdf < (u * cdf[:, -1])[:, None]).sum(axis=1), L - 1)
-        return lamp, p[np.arange(k), lamp]
+        return 0.5 / L + 0.5 * np.where(total > 0, est / np.where(total > 0, total, 1.0), 1.0 / L)
 
     def _visible(self, caster, origins, d, dist, lamp, transparency=None):
         """The fraction of each shadow ray's light that reaches its lamp, (k,) float64 (1 or 0

@@ -18,8 +18,9 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
   and **next-event estimation** samples one point on the emitters with a shadow ray
   (:meth:`~lmdp_addon.lights.EmitterSampler.next_event`); one-sided emitters (area lights) count
   only on their front side, mesh emission on both (``SceneArrays``); Blender's lights (point,
-  spot, sun and area lamps) add their light samples (:meth:`~lmdp_addon.lamps.Lamps.next_event`,
-  no MIS: rays never hit them);
+  spot, sun and area lamps) add their light samples (:meth:`~lmdp_addon.lamps.Lamps.next_event`),
+  MIS-weighted against the rays that hit the lamps with a body (``lamp_hits``; a ray crosses a
+  lamp and goes on, as in Cycles);
 * emitters hit by a ray sampled at y_k (k >= 1) are counted too, and the two estimates of the
   emitted light are combined by multiple importance sampling
   (:meth:`~lmdp_addon.lights.EmitterSampler.emission_hits`); the emitter hit by the texel's own
@@ -58,6 +59,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import lamp_hits
 from .. import world as world_light
 from ..bsdf import GlossyRows, VertexBSDF
 from ..lights import EmitterSampler
@@ -142,6 +144,8 @@ class IndirectTracer:
         self.caster = caster or RayCaster(scene)
         self.lights = EmitterSampler(scene)
         self.lamps = scene.lamps
+        #: Lamps with a body and Multiple Importance on: BSDF rays hit them (``lamp_hits``)
+        self.lamp_hits = bool(np.any(self.lamps.hittable))
         corners = scene.corners()
         self.corner0 = corners[:, 0].astype(np.float32)
         self.edge1 = (corners[:, 1] - corners[:, 0]).astype(np.float32)
@@ -245,6 +249,8 @@ class IndirectTracer:
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev)
+                if self.lamp_hits:   # lamps the rays cross before their hit (they go on through)
+                    self._lamps_found(L, idx, beta * w[:, None], origin, nrm, d, tri, dist, cos_prev, q_prev)
             if bounce > self.total_limit:
                 break
             if n_glossy is not None:   # Cycles' diffuse and glossy limits (the texel's bounce is diffuse)
@@ -361,7 +367,7 @@ class IndirectTracer:
         if not self.lamps.empty:
             lamp_direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
                                                              geometric=geometric, transparency=self.transparency,
-                                                             bsdf=glossy_rows)
+                                                             bsdf=glossy_rows, mis=True)
             stats.shadow_rays += shadow_rays
             direct = direct + lamp_direct
         if self.environment is not None:
@@ -439,6 +445,14 @@ class IndirectTracer:
             lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals,
                                                    pdf_from=q_prev)
             L[idx[lit]] += rows(bw, lit) * value
+
+    def _lamps_found(self, L, idx, bw, origin, nrm, d, tri, dist, cos_prev, q_prev=None):
+        """Adds to ``L`` the sampled-ray half of the lamps' MIS estimate (``lamp_hits``): the
+        lamps that the rays from the vertices at ``origin`` (shading normals ``nrm``) cross
+        before their closest hit ``dist`` (suns: the rays that escape); ``bw = β w``."""
+        lit, value = lamp_hits.emission_hits(self.lamps, origin, nrm, d, np.where(tri >= 0, dist, np.inf),
+                                             tri == -1, cos_prev, pdf_from=q_prev)
+        L[idx[lit]] += rows(bw, lit) * value
 
     def _final_gather(self, L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats):
         """FINAL_GATHER at y_1: the radiance leaving it, ρ (ẑ_ind + D_e), with the direct part by

@@ -300,7 +300,9 @@ def _lamp_record(name, matrix, light, warnings):
     record = dict(name=name, kind={'POINT': POINT, 'SPOT': SPOT, 'SUN': SUN, 'AREA': AREA}[light.type],
                   position=m[:3, 3], axis=axis / max(np.linalg.norm(axis), 1e-300),
                   strength=_light_strength(name, light, warnings),
-                  normalize=bool(getattr(light, "normalize", True)), cast_shadow=bool(light.use_shadow))
+                  normalize=bool(getattr(light, "normalize", True)), cast_shadow=bool(light.use_shadow),
+                  mis=bool(getattr(getattr(light.original, "cycles", None), "use_multiple_importance_sampling",
+                                   True)))
     if np.any(record["strength"] < 0):
         warnings.append(f"Light '{name}': negative power or colour is not modelled; those channels emit "
                         "nothing")
@@ -340,7 +342,8 @@ def _lamps(records):
                                     ("radius", 0.0), ("angle", 0.0), ("sphere", False), ("spot_size", np.pi),
                                     ("spot_blend", 0.0), ("strength", (0.0, 0.0, 0.0)), ("normalize", True),
                                     ("cast_shadow", True), ("extent_u", (0.0, 0.0, 0.0)),
-                                    ("extent_v", (0.0, 0.0, 0.0)), ("ellipse", False), ("spread", np.pi))}
+                                    ("extent_v", (0.0, 0.0, 0.0)), ("ellipse", False), ("spread", np.pi),
+                                    ("mis", True))}
     return Lamps(names=[r["name"] for r in records], **columns)
 
 
