@@ -44,7 +44,9 @@ In the LMDP (thesis 3.1.2-3.1.3) every lamp is a terminal state whose desirabili
 the irradiance W/m² of a parallel sun), reached only through light samples
 (:meth:`Lamps.transitions`) whose transition mass is ``D_l(y) / z_T`` = the lamp's
 cosine-weighted solid angle / π (per m² for delta point lamps, times d²): mass x z_T is the
-lamp's direct light / π, eq. 3.1's transition into an emitter.
+lamp's direct light / π, eq. 3.1's transition into an emitter. The build's stratum rays pass
+through lamps as the bake's do (a lamp adds its light and hides nothing), so the light samples
+alone carry each lamp's whole D_l: exact in expectation, and the rays' columns are Cycles'.
 """
 from dataclasses import dataclass, field
 

@@ -357,7 +357,7 @@ class IndirectTracer:
     def _next_events(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None):
         """The light-sampling half of the direct light D(y) (k, 3) at the points ``pos`` (shading
         normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``): the emitters' MIS estimate
-        (``lights``), Blender's lights by light sampling alone (``lamps``) and the environment
+        (``lights``), Blender's lights (``lamps``; MIS-weighted where rays hit them) and the environment
         map's MIS estimate (``world``), in that order of random numbers; rows of ``glossy_rows``
         (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density."""
         geometric = gnrm if self.smooth else None
