@@ -511,6 +511,9 @@ def _unsupported_light_features(name, obj, light, warnings):
     if getattr(obj, "lightgroup", ""):
         warnings.append(f"Light '{name}': light group '{obj.lightgroup}' is not modelled; the bake holds "
                         "every light")
+    if not getattr(obj, "visible_glossy", True):
+        warnings.append(f"Light '{name}': Visibility > Glossy off is not modelled; glossy surfaces reflect "
+                        "it in the bake")
     bounces = light.original.cycles.max_bounces   # add-on properties: read the user's own
     if bounces < 1024:
         warnings.append(f"Light '{name}': its Max Bounces ({bounces}) is not modelled; it lights every "

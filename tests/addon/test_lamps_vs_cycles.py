@@ -266,9 +266,9 @@ def test_gltf_with_point_spot_and_sun_lights_bakes_like_cycles(fresh_scene, lmdp
 
 
 def test_what_lamps_do_not_model_is_named_per_light(fresh_scene, lmdp_ext):
-    """Light linking, light groups, IES textures, a light's Max Bounces, negative power and
-    meshes that cast no shadow are each named in a warning; a light invisible to diffuse rays
-    and lights of power or size 0 or a non-finite location are left out."""
+    """Light linking, light groups, IES textures, a light's Max Bounces, negative power, a light
+    invisible to glossy rays and meshes that cast no shadow are each named in a warning; a light
+    invisible to diffuse rays and lights of power or size 0 or a non-finite location are left out."""
     cornell_without_light(lmdp_ext)
     linked = add_light('POINT', "Linked", (0.0, 0.0, 0.8), energy=10.0)
     collection = bpy.data.collections.new("Receivers")
@@ -283,12 +283,13 @@ def test_what_lamps_do_not_model_is_named_per_light(fresh_scene, lmdp_ext):
     add_light('AREA', "Flat", (0.0, 0.3, 0.9), energy=5.0, size=0.0)
     add_light('POINT', "Lost", (float("nan"), 0.0, 0.8), energy=5.0)
     add_light('SUN', "Hidden", (0.0, 0.0, 2.0), energy=1.0).visible_diffuse = False
+    add_light('POINT', "Matte", (0.1, 0.3, 0.8), energy=5.0).visible_glossy = False
     bpy.data.objects["TallBox"].visible_shadow = False
     extract = lmdp_ext.sub("operators.adapters.extract")
     arrays = extract.extract_scene(bpy.context, [bpy.data.objects["Floor"]])
     text = "\n".join(arrays.warnings)
     for name, words in (("Linked", "light linking"), ("Grouped", "light group"), ("Profiled", "IES"),
                         ("Short", "Max Bounces"), ("Negative", "negative"), ("Hidden", "invisible to diffuse"),
-                        ("TallBox", "Shadow off"), ("Lost", "non-finite")):
+                        ("TallBox", "Shadow off"), ("Lost", "non-finite"), ("Matte", "Glossy off")):
         assert any(f"'{name}'" in w and words in w for w in arrays.warnings), (name, text)
-    assert sorted(arrays.lamps.names) == ["Grouped", "Linked", "Profiled", "Short"], arrays.lamps.names
+    assert sorted(arrays.lamps.names) == ["Grouped", "Linked", "Matte", "Profiled", "Short"], arrays.lamps.names
