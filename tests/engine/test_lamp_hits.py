@@ -191,3 +191,46 @@ def test_mis_lowers_the_noise_of_a_sharp_glossy_reflection(lamp):
     print(f"{lamp}: MIS {m_on:.5f} ± {se_on:.5f}, light sampling alone {m_off:.5f} ± {se_off:.5f}")
     assert abs(m_on - m_off) <= K * np.hypot(se_on, se_off)
     assert se_on < 0.5 * se_off
+
+
+@pytest.mark.parametrize("lamp", ["disk_area", "sphere", "sun_20_degrees"])
+def test_direct_light_at_the_texel_combines_its_first_ray_and_its_light_sample(lamp):
+    """DIRECT + INDIRECT on the bare floor (nothing bounces): the texel's light sample and the
+    lamp its first ray meets add up to the closed form (disk: L ρ²/(ρ² + h²); sphere: L r²/h²;
+    sun: S / π)."""
+    from lmdp_addon.bake.content import BakeContent
+    lamps = lamps_of(lamp)
+    L = lamps.emission[0, 0]
+    expected = {"disk_area": L * 0.25 / (0.25 + H * H), "sphere": L * 0.09 / (H * H), "sun_20_degrees": 3.0 / np.pi}
+    tracer = IndirectTracer(floor_scene(lamps), "UNGUIDED", max_bounces=2, content=BakeContent(direct=True))
+    assert tracer.lamp_hits
+    if lamp == "sun_20_degrees":   # the sun's axis is tilted: cos of the angle to its centre
+        axis = lamps.axis[0]
+        expected[lamp] *= -axis[2]
+    values, _ = trace_at(tracer, (0.0, 0.0, 0.0), (0, 0, 1), 40_000)
+    assert_within(values[:, 0], expected[lamp], extra=2e-3 * expected[lamp])
+
+
+def test_guided_paths_with_a_hittable_lamp_agree_with_unguided():
+    """GUIDED draws from the mixture of the guide and the cosine (or the BSDF) and weights lamp
+    hits with the cosine / BSDF half: unbiased, as UNGUIDED, in a room lit by an area light and a
+    sphere lamp over a Glossy 0.2 floor."""
+    from lmdp_addon.bake import driver as baking
+    from lmdp_addon.model import pipeline
+    from test_lamps import small
+    parts = [p for p in scenes.scene_parts("CORNELL_BOX") if p.name != "Light"]
+    scene = scenes.parts_to_scene_arrays(parts)
+    floor = scene.triangle_object == scene.object_names.index("Floor")
+    scene.materials = bsdf.MaterialTable.from_lobes([[dict(kind=bsdf.GLOSSY, weight=1.0, roughness=0.2)]])
+    scene.triangle_material = np.where(floor, 0, -1).astype(np.int32)
+    scene.lamps = Lamps(names=["Panel", "Ball"], kind=[AREA, POINT], position=[[0, 0, 0.9], [-0.2, 0.2, 0.6]],
+                        extent_u=[[0.3, 0, 0], [0, 0, 0]], extent_v=[[0, 0.3, 0], [0, 0, 0]], ellipse=[True, False],
+                        radius=[0.0, 0.08], sphere=[False, True], strength=[[10.0] * 3, [8.0, 6.0, 4.0]])
+    s = small(bake_resolution=12, bake_samples=256, max_bounces=4, point_count=1500)
+    a = baking.bake(scene, ["Ceiling"], s).objects[0]
+    g = baking.bake(scene, ["Ceiling"], s.__class__(**{**s.__dict__, "bake_mode": "GUIDED"}),
+                    lmdp=pipeline.run_all(scene, s)).objects[0]
+    mean_a, mean_g = a.value.mean(axis=0), g.value.mean(axis=0)
+    se = np.sqrt((a.standard_error.astype(float) ** 2).sum(0) + (g.standard_error.astype(float) ** 2).sum(0)) / len(a.value)
+    assert np.all(mean_a > 0.05)
+    assert np.all(np.abs(mean_g - mean_a) <= K * se), (mean_a, mean_g, se)
