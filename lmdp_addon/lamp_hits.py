@@ -31,64 +31,65 @@ INV_PI = 1.0 / np.pi
 
 
 def intersect(lamps, origins, d, tmax, escaped):
-    """Distances (k, H) from ``origins (k, 3)`` along unit ``d (k, 3)`` (float64) to each of the
-    H :attr:`~lmdp_addon.lamps.Lamps.hittable` lamps (their indices: the second value), inf where
-    the ray misses it or meets it beyond ``tmax (k,)`` (the closest surface; inf for rays that
-    escape); suns are hit (distance inf) by the ``escaped (k,)`` rays inside their cone."""
-    hit = np.flatnonzero(lamps.hittable)
+    """The (ray, lamp) pairs of rays from ``origins (k, 3)`` along unit ``d (k, 3)`` (float64)
+    that cross a :attr:`~lmdp_addon.lamps.Lamps.hittable` lamp before ``tmax (k,)`` (the
+    closest surface; inf for rays that escape): ``(ray (m,), lamp (m,), t (m,))`` sorted by ray,
+    t the distance to the lamp (inf for a sun, hit by the ``escaped (k,)`` rays inside its
+    cone). All rays x all hittable lamps, culled by (k, L) matrix products before the exact
+    tests run on the candidate pairs."""
     o = np.asarray(origins, dtype=np.float64)
     d = np.asarray(d, dtype=np.float64)
-    tmax = np.asarray(tmax, dtype=np.float64)[:, None]
-    t = np.full((len(o), len(hit)), np.inf)
+    tmax = np.asarray(tmax, dtype=np.float64)
+    hit = np.flatnonzero(lamps.hittable)
     kind = lamps.kind[hit]
-    c = lamps.position[hit]
+    found = []
     # ---- area lights: the plane, one-sided, inside the rectangle / ellipse ----
-    a = np.flatnonzero(kind == AREA)
+    a = hit[kind == AREA]
     if len(a):
-        la = hit[a]
-        n = lamps.axis[la]
-        denom = d @ n.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ta = ((c[a] * n).sum(axis=1)[None, :] - o @ n.T) / denom
-        rel = o[:, None, :] + np.where(np.isfinite(ta), ta, 0.0)[..., None] * d[:, None, :] - c[a][None]
-        eu, ev = lamps.extent_u[la], lamps.extent_v[la]
-        u = np.einsum("kli,li->kl", rel, eu / (eu * eu).sum(axis=1, keepdims=True))
-        v = np.einsum("kli,li->kl", rel, ev / (ev * ev).sum(axis=1, keepdims=True))
-        inside = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5) & (~lamps.ellipse[la] | (u * u + v * v <= 0.25))
-        ok = (denom < 0) & (ta > 0) & (ta < tmax) & inside
-        t[:, a] = np.where(ok, ta, np.inf)
+        n = lamps.axis[a]
+        denom = d @ n.T                                             # (k, A)
+        height = (lamps.position[a] * n).sum(axis=1)[None, :] - o @ n.T
+        ray, j = np.nonzero((denom < 0) & (height < 0))             # in front, heading to the plane
+        lamp = a[j]
+        t = height[ray, j] / denom[ray, j]
+        rel = o[ray] + t[:, None] * d[ray] - lamps.position[lamp]
+        eu, ev = lamps.extent_u[lamp], lamps.extent_v[lamp]
+        u = (rel * eu).sum(axis=1) / (eu * eu).sum(axis=1)
+        v = (rel * ev).sum(axis=1) / (ev * ev).sum(axis=1)
+        ok = ((t > 0) & (t < tmax[ray]) & (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
+              & (~lamps.ellipse[lamp] | (u * u + v * v <= 0.25)))
+        found.append((ray[ok], lamp[ok], t[ok]))
     # ---- point and spot lamps: spheres, or disks facing the ray's origin ----
-    p = np.flatnonzero((kind != AREA) & (kind != SUN))
+    p = hit[(kind != AREA) & (kind != SUN)]
     if len(p):
-        lp = hit[p]
-        r = lamps.radius[lp][None, :]
-        to_c = c[p][None, :, :] - o[:, None, :]                    # (k, P, 3)
-        d_sq = np.einsum("kli,kli->kl", to_c, to_c)
-        d_cos = np.einsum("kli,ki->kl", to_c, d)
+        c = lamps.position[p]
+        r_sq = lamps.radius[p] ** 2
+        d_cos = d @ c.T - (o * d).sum(axis=1)[:, None]               # (c - o) · d, (k, P)
+        d_sq = np.maximum((o * o).sum(axis=1)[:, None] - 2.0 * (o @ c.T) + (c * c).sum(axis=1)[None, :], 0.0)
+        # both shapes need the ray's line within r of the centre, ahead of the origin or from inside
+        ray, j = np.nonzero((d_sq - d_cos * d_cos <= r_sq[None, :]) & ((d_cos > 0) | (d_sq <= r_sq[None, :])))
+        lamp, dc, dq, rq = p[j], d_cos[ray, j], d_sq[ray, j], r_sq[j]
         # spheres: Cycles' ray_sphere_intersect (the entry from outside, the exit from inside)
-        sin_sq = np.maximum(d_sq - d_cos * d_cos, 0.0)
-        outside = d_sq > r * r
-        ts = d_cos - np.where(outside, 1.0, -1.0) * np.sqrt(np.maximum(r * r - sin_sq, 0.0))
-        sphere_ok = ~(outside & (d_cos < 0)) & (sin_sq <= r * r)
-        # disks: normal (o - c) / |o - c|, hit where the ray meets them within r of the centre
-        dist_c = np.sqrt(d_sq)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cos_angle = d_cos / dist_c                            # N · (-d), N = (o - c) / |o - c|
-            td = dist_c / cos_angle
-        q = d[:, None, :] * np.where(np.isfinite(td), td, 0.0)[..., None] - to_c
-        disk_ok = (cos_angle > 0) & (np.einsum("kli,kli->kl", q, q) < r * r)
-        tp = np.where(lamps.sphere[lp][None, :], np.where(sphere_ok, ts, np.inf), np.where(disk_ok, td, np.inf))
-        spot = (kind[p] == SPOT)[None, :]
-        tp = np.where(spot & (d_cos <= 0), np.inf, tp)            # spots: one-sided (spot.h)
-        t[:, p] = np.where((tp > 0) & (tp < tmax), tp, np.inf)
-    # ---- suns of angle > 0: escaping rays inside the cone (distance inf, flagged apart) ----
-    s = np.flatnonzero(kind == SUN)
-    sun_hit = np.zeros((len(o), len(hit)), bool)
+        outside = dq > rq
+        ts = dc - np.where(outside, 1.0, -1.0) * np.sqrt(np.maximum(rq - np.maximum(dq - dc * dc, 0.0), 0.0))
+        # disks: normal N = (o - c) / |o - c|, N · (-d) = d_cos / |o - c|, hit within r of c
+        dist_c = np.sqrt(dq)
+        td = np.where(dc > 0, dq / np.where(dc > 0, dc, 1.0), 0.0)    # |o - c| / (N · (-d))
+        disk_ok = (dc > 0) & (dist_c > 0) & (td * td - 2.0 * td * dc + dq < rq)   # |o + t d - c|² < r²
+        t = np.where(lamps.sphere[lamp], ts, np.where(disk_ok, td, np.inf))
+        ok = (t > 0) & (t < tmax[ray]) & ~((lamps.kind[lamp] == SPOT) & (dc <= 0))   # spots: one-sided
+        found.append((ray[ok], lamp[ok], t[ok]))
+    # ---- suns of angle > 0: escaping rays inside the cone ----
+    s = hit[kind == SUN]
     if len(s):
-        ls = hit[s]
-        cos_sun = -(d @ lamps.axis[ls].T)
-        sun_hit[:, s] = np.asarray(escaped, bool)[:, None] & (cos_sun >= np.cos(0.5 * lamps.angle[ls])[None, :])
-    return t, hit, sun_hit
+        cos_sun = -(d @ lamps.axis[s].T)
+        ray, j = np.nonzero(np.asarray(escaped, bool)[:, None] & (cos_sun >= np.cos(0.5 * lamps.angle[s])[None, :]))
+        found.append((ray, s[j], np.full(len(ray), np.inf)))
+    if not found:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    ray, lamp, t = (np.concatenate(x) for x in zip(*found))
+    order = np.argsort(ray, kind="stable")
+    return ray[order], lamp[order], t[order]
 
 
 def emission_hits(lamps, origins, normals, d, dist, escaped, cos_from, pdf_from=None):
@@ -106,13 +107,11 @@ def emission_hits(lamps, origins, normals, d, dist, escaped, cos_from, pdf_from=
     o = np.asarray(origins, dtype=np.float32).astype(np.float64)
     dd = np.asarray(d, dtype=np.float32).astype(np.float64)
     dd = dd / np.linalg.norm(dd, axis=1, keepdims=True)
-    t, hit, sun_hit = intersect(lamps, o, dd, np.where(np.isfinite(dist), dist, np.inf), escaped)
-    ray, col = np.nonzero(np.isfinite(t) | sun_hit)
+    ray, lamp, t = intersect(lamps, o, dd, np.where(np.isfinite(dist), dist, np.inf), escaped)
     if len(ray) == 0:
         return none
-    lamp = hit[col]
     nrm = np.asarray(normals, dtype=np.float64)
-    p_l = lamps.pdf(o[ray], nrm[ray], lamp, dd[ray], t[ray, col])
+    p_l = lamps.pdf(o[ray], nrm[ray], lamp, dd[ray], t)
     if len(lamps) > ALL_LAMPS:
         p_l = p_l * lamps.selection(o[ray], nrm[ray])[np.arange(len(ray)), lamp]
     q = np.asarray(cos_from, dtype=np.float64)[ray] * INV_PI
@@ -122,7 +121,6 @@ def emission_hits(lamps, origins, normals, d, dist, escaped, cos_from, pdf_from=
     with np.errstate(invalid="ignore"):
         weight = np.where(q > 0, q * q / (q * q + p_l * p_l), 0.0)
     value = lamps.radiance(lamp, o[ray], dd[ray]) * weight[:, None]
-    rays, inverse = np.unique(ray, return_inverse=True)
-    out = np.zeros((len(rays), 3))
-    np.add.at(out, inverse, value)
+    rays, first = np.unique(ray, return_index=True)   # sorted by ray: each ray's lamps together
+    out = np.add.reduceat(value, first, axis=0) if len(ray) > len(rays) else value
     return rays, out.astype(np.float32)

@@ -109,24 +109,19 @@ def test_rays_hit_lamps_where_cycles_intersects_them():
         [25, 0, 0], [30, 0, 0],                                   # delta bulb, MIS off
     ], float)
     d = np.array([up, up, down] + [up] * 2 + [up, up, up] + [up] + [up, up] + [up, up])
-    tmax = np.full(len(o), np.inf)
-    t, hit, _ = lamp_hits.intersect(lamps, o, d, tmax, np.zeros(len(o), bool))
+    ray, lamp, t = lamp_hits.intersect(lamps, o, d, np.full(len(o), np.inf), np.zeros(len(o), bool))
     expected = {0: (0, 1.0), 1: (0, 1.0), 4: (1, 1.0), 5: (2, 0.7), 6: (2, 0.3), 8: (3, 1.0), 9: (4, 0.7)}
-    for row in range(len(o)):
-        finite = np.flatnonzero(np.isfinite(t[row]))
-        if row in expected:
-            lamp, dist = expected[row]
-            assert list(hit[finite]) == [lamp], row
-            np.testing.assert_allclose(t[row, finite[0]], dist, rtol=1e-9)
-        else:
-            assert len(finite) == 0, (row, hit[finite])
+    assert list(ray) == sorted(expected)
+    for i, row in enumerate(ray):
+        assert lamp[i] == expected[row][0], row
+        np.testing.assert_allclose(t[i], expected[row][1], rtol=1e-9)
     # a surface before the lamp hides it; the sun only for rays that escape, inside its cone
-    t, hit, sun = lamp_hits.intersect(lamps, o[:1], d[:1], np.array([0.5]), np.zeros(1, bool))
-    assert not np.isfinite(t).any()
-    tilt = np.array([[np.sin(0.09), 0, np.cos(0.09)], [np.sin(0.11), 0, np.cos(0.11)]])
-    _, hit, sun = lamp_hits.intersect(lamps, np.array([[40.0, 0, 0]] * 2), tilt, np.full(2, np.inf),
-                                      np.array([True, True]))
-    assert list(sun[:, list(hit).index(5)]) == [True, False]
+    ray, _, _ = lamp_hits.intersect(lamps, o[:1], d[:1], np.array([0.5]), np.zeros(1, bool))
+    assert len(ray) == 0
+    tilt = np.array([[np.sin(0.09), 0, np.cos(0.09)], [np.sin(0.11), 0, np.cos(0.11)]] * 2)
+    ray, lamp, t = lamp_hits.intersect(lamps, np.array([[40.0, 0, 0]] * 4), tilt, np.full(4, np.inf),
+                                       np.array([True, True, False, False]))
+    assert list(ray) == [0] and list(lamp) == [5] and np.isinf(t[0])
 
 
 def mirror_scene(lamps, roughness=0.0):
