@@ -19,7 +19,7 @@ import pytest
 
 from test_bake_vs_cycles import assert_means_agree, compare, lmdp_bake, reference
 from test_glossy_vs_cycles import assign, cycles_glossy_settings, new_material
-from test_lamps_vs_cycles import add_light, cornell_without_light
+from test_lamps_vs_cycles import add_light, cornell_without_light, window_wall
 
 RESOLUTION = 24
 
@@ -49,6 +49,7 @@ def check(lmdp_ext, demo, receiver, samples, reference_samples, label, two_perce
     ob = lmdp_bake(lmdp_ext, receiver, "UNGUIDED", RESOLUTION, samples)
     ours, cyc, var_o, var_c = compare(ob, refs)
     rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
+    print(f"{label}: s.e. of the means ours {np.sqrt(var_o.sum(0)) / len(ours)} cycles {np.sqrt(var_c.sum(0)) / len(ours)}")
     print(f"{label} / {receiver}: ours {ours.mean(axis=0)} cycles {cyc.mean(axis=0)}, "
           f"rel {np.round(rel * 100, 2)} % ± {np.round(rel_sigma * 100, 2)} % (1 s.e.)")
     if two_percent:
@@ -128,3 +129,23 @@ def test_direct_light_from_a_large_close_lamp_matches_cycles(fresh_scene, lmdp_e
         assert np.all(np.abs(rel) < 0.02), rel
         var.append(var_o.mean())
     print(f"{lamp}: standard error with MIS / light sampling alone = {np.sqrt(var[0] / var[1]):.2f}")
+
+
+def test_sun_seen_in_a_glossy_floor_through_a_window_matches_cycles(fresh_scene, lmdp_ext, demo):
+    """A sun of 20° through the back wall's window onto a Glossy 0.1 floor: the ceiling sees the
+    sun in the floor, through rays that escape by the window inside the sun's cone (Cycles'
+    ``integrate_distant_lights``) and by its light samples; MIS on and off against Cycles."""
+    cornell_without_light(lmdp_ext)
+    window_wall()
+    cycles_glossy_settings(fresh_scene)
+    fresh_scene.cycles.sample_clamp_indirect = 0.0
+    assign(bpy.data.objects["Floor"], new_material("Glossy 0.1", "ShaderNodeBsdfGlossy",
+                                                   Color=(0.8, 0.8, 0.8, 1.0), Roughness=0.1))
+    sun = add_light('SUN', "Sun", (0.0, 2.0, 2.0), (np.radians(-50), 0.0, np.radians(180)), energy=3.0,
+                    angle=np.radians(20.0))
+    var_mis = check(lmdp_ext, demo, "Ceiling", 1024, 4096, "sun MIS")
+    sun.data.cycles.use_multiple_importance_sampling = False
+    var_nee = check(lmdp_ext, demo, "Ceiling", 1024, 4096, "sun light sampling alone", two_percent=False)
+    ratio = np.sqrt(var_mis.mean() / var_nee.mean())
+    print(f"sun: standard error with MIS / light sampling alone = {ratio:.2f}")
+    assert ratio < 0.5, ratio   # measured 0.16
