@@ -28,6 +28,9 @@ import numpy as np
 from .lamps import ALL_LAMPS, AREA, SPOT, SUN
 
 INV_PI = 1.0 / np.pi
+#: Ray x lamp pairs tested at once (the (k, L) float64 matrices of :func:`intersect` stay
+#: within a few tens of MB whatever the number of lamps).
+PAIRS_PER_CHUNK = 1 << 21
 
 
 def intersect(lamps, origins, d, tmax, escaped):
@@ -40,7 +43,14 @@ def intersect(lamps, origins, d, tmax, escaped):
     o = np.asarray(origins, dtype=np.float64)
     d = np.asarray(d, dtype=np.float64)
     tmax = np.asarray(tmax, dtype=np.float64)
+    escaped = np.asarray(escaped, bool)
     hit = np.flatnonzero(lamps.hittable)
+    step = max(1, PAIRS_PER_CHUNK // max(len(hit), 1))
+    if len(o) > step:   # chunks of rays: bounded memory with many lamps
+        parts = [intersect(lamps, o[i:i + step], d[i:i + step], tmax[i:i + step], escaped[i:i + step])
+                 for i in range(0, len(o), step)]
+        return (np.concatenate([r + i for r, i in zip((p[0] for p in parts), range(0, len(o), step))]),
+                np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]))
     kind = lamps.kind[hit]
     found = []
     # ---- area lights: the plane, one-sided, inside the rectangle / ellipse ----
@@ -83,7 +93,7 @@ def intersect(lamps, origins, d, tmax, escaped):
     s = hit[kind == SUN]
     if len(s):
         cos_sun = -(d @ lamps.axis[s].T)
-        ray, j = np.nonzero(np.asarray(escaped, bool)[:, None] & (cos_sun >= np.cos(0.5 * lamps.angle[s])[None, :]))
+        ray, j = np.nonzero(escaped[:, None] & (cos_sun >= np.cos(0.5 * lamps.angle[s])[None, :]))
         found.append((ray, s[j], np.full(len(ray), np.inf)))
     if not found:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)

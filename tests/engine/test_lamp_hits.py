@@ -229,3 +229,23 @@ def test_guided_paths_with_a_hittable_lamp_agree_with_unguided():
     se = np.sqrt((a.standard_error.astype(float) ** 2).sum(0) + (g.standard_error.astype(float) ** 2).sum(0)) / len(a.value)
     assert np.all(mean_a > 0.05)
     assert np.all(np.abs(mean_g - mean_a) <= K * se), (mean_a, mean_g, se)
+
+
+def test_many_rays_and_lamps_are_intersected_in_chunks_with_the_same_result(monkeypatch):
+    rng = np.random.default_rng(0)
+    n = 30
+    lamps = Lamps(names=[f"l{i}" for i in range(n)], kind=[POINT] * 20 + [AREA] * 10, position=rng.uniform(-1, 1, (n, 3)),
+                  radius=[0.2] * 20 + [0] * 10, sphere=[i % 2 == 0 for i in range(n)],
+                  extent_u=[[0, 0, 0]] * 20 + [[0.5, 0, 0]] * 10, extent_v=[[0, 0, 0]] * 20 + [[0, 0.5, 0]] * 10,
+                  axis=rng.normal(size=(n, 3)), strength=[[1.0] * 3] * n)
+    k = 20000
+    o = rng.uniform(-1, 1, (k, 3))
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tmax = rng.uniform(0, 3, k)
+    whole = lamp_hits.intersect(lamps, o, d, tmax, np.zeros(k, bool))
+    monkeypatch.setattr(lamp_hits, "PAIRS_PER_CHUNK", 1000 * n)   # 20 chunks of 1000 rays
+    chunked = lamp_hits.intersect(lamps, o, d, tmax, np.zeros(k, bool))
+    assert len(whole[0]) > 1000
+    for a, b in zip(whole, chunked):
+        np.testing.assert_array_equal(a, b)
