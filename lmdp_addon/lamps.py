@@ -433,15 +433,22 @@ class Lamps:
             lp = lamp[p]
             r = self.radius[lp]
             to_c = self.position[lp] - o[p]
-            dc = np.linalg.norm(to_c, axis=1)
+            dc = np.sqrt(np.einsum("ij,ij->i", to_c, to_c))
             sph = self.sphere[lp]
-            omc = _sin_sqr_to_one_minus_cos((r / np.maximum(dc, 1e-300)) ** 2)
-            cos_n = np.einsum("ij,ij->i", d[p], np.asarray(normals, dtype=np.float64)[p])
-            cos_l = np.abs(np.einsum("ij,ij->i", to_c, d[p])) / np.maximum(dc, 1e-300)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                inside = np.where(cos_n > 0, np.pi / cos_n, np.inf)
-                disk = np.where(cos_l > 0, t[p] ** 2 / (np.pi * r * r * cos_l), np.inf)
-                out[p] = np.where(sph, np.where(dc > r, 1.0 / (2.0 * np.pi * omc), 1.0 / inside), disk)
+            pdf = np.empty(len(p))
+            i = np.flatnonzero(sph & (dc > r))           # outside a sphere: uniform in its cone
+            pdf[i] = 1.0 / (2.0 * np.pi * _sin_sqr_to_one_minus_cos((r[i] / dc[i]) ** 2))
+            i = np.flatnonzero(sph & (dc <= r))          # inside: cosine about the normal
+            if len(i):
+                cos_n = np.einsum("ij,ij->i", d[p[i]], np.asarray(normals, dtype=np.float64)[p[i]])
+                pdf[i] = np.maximum(cos_n, 0.0) * INV_PI
+            i = np.flatnonzero(~sph)                     # a disk facing the receiver: t² / (π r² cos θ_l)
+            if len(i):
+                cos_l = np.abs(np.einsum("ij,ij->i", to_c[i], d[p[i]])) / np.maximum(dc[i], 1e-300)
+                with np.errstate(divide="ignore"):
+                    pdf[i] = np.where(cos_l > 0, t[p[i]] ** 2 / (np.pi * r[i] ** 2 * np.where(cos_l > 0, cos_l, 1.0)),
+                                      np.inf)
+            out[p] = pdf
         return out
 
     def radiance(self, lamp, origins, d):
