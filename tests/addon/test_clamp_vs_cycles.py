@@ -113,6 +113,25 @@ def test_indirect_clamp_matches_cycles_on_the_spark_box(fresh_scene, lmdp_ext, d
     agree_clamped(ob, refs, unclamped, f"spark box floor, indirect clamp 10, {mode}")
 
 
+def test_indirect_clamp_of_a_point_light_matches_cycles(fresh_scene, lmdp_ext, demo):
+    """The spark replaced by a 60 W point light (radius 0) at its place: the lamps' light samples
+    go through the same clamp (22 % below the unclamped value at Cycles' default 10)."""
+    scene = spark_box()
+    bpy.data.objects.remove(bpy.data.objects["Spark"])
+    light = bpy.data.lights.new("Bulb", 'POINT')
+    light.energy, light.shadow_soft_size = 60.0, 0.0
+    bulb = bpy.data.objects.new("Bulb", light)
+    bulb.location = (-0.17, 0.12, 0.6 + SPARK["gap"])
+    scene.collection.objects.link(bulb)
+    scene.cycles.sample_clamp_indirect = 10.0
+    refs = clamped_reference(lmdp_ext, demo, "Floor", ("INDIRECT",), 2048)
+    ob, result = default_bake(lmdp_ext, "Floor", 2048)
+    assert result.stats()["light_paths"]["clamp_indirect"] == 10.0 and not result.warnings
+    scene.cycles.sample_clamp_indirect = 0.0
+    unclamped, _ = default_bake(lmdp_ext, "Floor", 256)
+    agree_clamped(ob, refs, unclamped, "spark box floor lit by a point light, indirect clamp 10")
+
+
 def test_direct_clamp_matches_cycles_on_a_direct_indirect_bake(fresh_scene, lmdp_ext, demo):
     """The ceiling above the spark, direct + indirect, Cycles' direct clamp 0.5 (indirect off):
     the light samples and the MIS-weighted hits of the texel's own rays are clamped at the
