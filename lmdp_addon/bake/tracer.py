@@ -36,6 +36,10 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
   'INDIRECT'}) and / or multiplies each path by x0's diffuse colour (Cycles' 'COLOR');
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
+* ``clamp`` (:mod:`~lmdp_addon.bake.clamp`): Cycles' sample clamp of every contribution
+  (:meth:`IndirectTracer._add`), and then Cycles' Russian roulette instead (from y_2, survival
+  ``min(1, sqrt(max_c T_c))`` of Cycles' throughput T = ρ(x0) β w), so that the clamped
+  contributions are distributed as Cycles'.
 
 Direction sampling (``guide.py``): UNGUIDED (and RESIDUAL) cosine-weighted, ``p(ω) = cos θ / π`` (``w = 1``);
 GUIDED the one-sample mixture ``α g_s + (1 - α) cos θ / π`` of the optimal policy of the
