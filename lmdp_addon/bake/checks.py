@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import BudgetError, SceneError, StageOrderError
 from ..settings import BAKE_CONTENTS, BAKE_MODES, OUTPUT_8BIT, OUTPUT_FORMATS
-from .clamp import clamp_warnings
+from .clamp import check_clamp, clamp_warnings
 from .memory import estimate_bake_bytes
 from .resolution import check_resolution_settings, object_resolutions
 from .texels import rasterize_texels, texel_count_bound
@@ -248,6 +248,7 @@ def _check_settings(settings, names):
     if int(settings.max_bounces) < 1:
         raise SceneError(f"Max bounces must be at least 1 for indirect light (got {settings.max_bounces})")
     check_resolution_settings(settings)
+    check_clamp(settings)
     if not names:
         raise SceneError("Select at least one mesh object to bake")
     return R

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import SceneError
+
 #: Cycles keeps each limit times 3 (the sum of the three channels is compared).
 CHANNELS = 3.0
 
@@ -97,3 +99,14 @@ def clamp_warnings(scene, settings):
                    "time, where Cycles draws one sample among all of them: in a scene with several kinds of "
                    "light the clamped lightmap can differ from Cycles' clamped bake")
     return out
+
+
+def check_clamp(settings):
+    """Raise :class:`~lmdp_addon.errors.SceneError` naming the setting when a clamp limit is
+    negative or not a number (0 is off, as in Cycles)."""
+    for name, label in (("clamp_direct", "Clamp Direct"), ("clamp_indirect", "Clamp Indirect")):
+        value = float(getattr(settings, name, 0.0))
+        if not np.isfinite(value) or value < 0:
+            raise SceneError(f"{label} must be 0 (off) or a positive radiance (got {value!r}): set LMDP > Bake > "
+                             f"{label} (Light Paths Custom) or the scene's Render Properties > Light Paths > "
+                             "Clamping")

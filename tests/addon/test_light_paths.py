@@ -148,8 +148,11 @@ def test_headless_default_follows_the_scene_and_set_custom_works(repo_root, tmp_
 
     default = light_paths(tmp_path / "default")
     assert default["source"] == "SCENE" and default["path_length"] == 3
-    custom = light_paths(tmp_path / "custom", "--set", "light_paths=CUSTOM", "--set", "max_bounces=6")
+    assert (default["clamp_direct"], default["clamp_indirect"], default["clamp_applied"]) == (0.0, 10.0, True)
+    custom = light_paths(tmp_path / "custom", "--set", "light_paths=CUSTOM", "--set", "max_bounces=6",
+                         "--set", "clamp_indirect=2.5")
     assert custom["source"] == "CUSTOM" and custom["path_length"] == 6
+    assert (custom["clamp_direct"], custom["clamp_indirect"], custom["clamp_applied"]) == (0.0, 2.5, True)
 
 
 # -- slow: the default bake against Cycles' bake with Cycles' default light paths -------------------

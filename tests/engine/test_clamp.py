@@ -15,6 +15,7 @@ from lmdp_addon.bake import driver
 from lmdp_addon.bake.clamp import SampleClamp, clamp_light, clamp_warnings
 from lmdp_addon.bake.content import BakeContent
 from lmdp_addon.bake.tracer import IndirectTracer
+from lmdp_addon.errors import SceneError
 from lmdp_addon.settings import LightPaths, Settings
 from test_tracer import furnace
 
@@ -139,3 +140,10 @@ def test_clamp_warnings_name_the_modes_and_light_kinds(cornell):
     guided = clamp_warnings(cornell, Settings(clamp_indirect=10.0, bake_mode="GUIDED"))
     assert len(guided) == 1 and "GUIDED" in guided[0] and "indirect clamp 10" in guided[0]
     assert "Residual" in clamp_warnings(cornell, Settings(clamp_direct=1.0, bake_mode="FINAL_GATHER"))[0]
+
+
+@pytest.mark.parametrize("name, value", [("clamp_indirect", -1.0), ("clamp_direct", float("nan"))])
+def test_a_negative_or_nan_clamp_is_refused_naming_the_setting(cornell, name, value):
+    label = {"clamp_indirect": "Clamp Indirect", "clamp_direct": "Clamp Direct"}[name]
+    with pytest.raises(SceneError, match=f"{label} must be 0 \\(off\\) or a positive"):
+        driver.bake(cornell, ["Floor"], small(**{name: value}))
