@@ -73,7 +73,8 @@ def clamp_light(light, limit, weight=None):
 def clamp_warnings(scene, settings):
     """The ways a clamped bake of ``scene`` with ``settings`` cannot follow Cycles' clamp, one
     message each (none without a clamp): the clamp is a function of each sample, so it matches
-    Cycles' only where the samples are drawn as Cycles draws them."""
+    Cycles' only where it sees the samples Cycles would draw (GUIDED: through the ratio of Cycles'
+    throughput to the path's, ``tracer._to_cycles``)."""
     clamp = SampleClamp.from_settings(settings)
     if not clamp.active:
         return []
@@ -81,15 +82,11 @@ def clamp_warnings(scene, settings):
                         (("direct", clamp.direct), ("indirect", clamp.indirect)) if value > 0)
     out = []
     mode = getattr(settings, "bake_mode", "UNGUIDED")
-    if mode == "GUIDED":
-        out.append(f"The sample clamp ({what}) scales down GUIDED's samples, which are drawn from the optimal "
-                   "policy, not as Cycles draws them: the clamped lightmap is not Cycles' clamped bake "
-                   "(Unguided or Residual clamp the same samples as Cycles)")
-    elif mode == "FINAL_GATHER":
+    if mode == "FINAL_GATHER":
         out.append(f"The sample clamp ({what}) applies to Final Gather's light samples only: the light beyond "
                    "the first bounce comes from the solution as an expected value and is not clamped, so the "
                    "lightmap is brighter than Cycles' clamped bake where Cycles clips those paths "
-                   "(Unguided or Residual clamp the same samples as Cycles)")
+                   "(Unguided, Guided or Residual clamp as Cycles does)")
     kinds = [name for name, present in (
         ("emissive meshes", bool(np.any(scene.is_emissive()))),
         ("lights", not scene.lamps.empty),

@@ -39,7 +39,8 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
 * ``clamp`` (:mod:`~lmdp_addon.bake.clamp`): Cycles' sample clamp of every contribution
   (:meth:`IndirectTracer._add`), and then Cycles' Russian roulette instead (from y_2, survival
   ``min(1, sqrt(max_c T_c))`` of Cycles' throughput T = ρ(x0) β w), so that the clamped
-  contributions are distributed as Cycles'.
+  contributions are distributed as Cycles'; guided directions enter the clamp through the
+  ratio of Cycles' throughput to the path's (:func:`_to_cycles`).
 
 Direction sampling (``guide.py``): UNGUIDED (and RESIDUAL) cosine-weighted, ``p(ω) = cos θ / π`` (``w = 1``);
 GUIDED the one-sample mixture ``α g_s + (1 - α) cos θ / π`` of the optimal policy of the
@@ -228,11 +229,19 @@ class IndirectTracer:
             # alpha); in channels where that colour is 0 it takes the others' (below). Cycles'
             # clamp sees the light times it (its throughput after x, ``clamp``).
             colour0 = self._start_colour(pos, np.asarray(triangles, dtype=np.int64))
-        rho0 = colour0 if self.clamp is not None else None
+        # What the clamp multiplies each path's contributions by to see Cycles' own: ρ(x0) and,
+        # where the guide draws directions, Cycles' throughput over the path's (``_to_cycles``).
+        rho0 = None
+        if self.clamp is not None:
+            rho0 = colour0
+            if self.guide is not None:
+                rho0 = np.ones((n, 3), np.float32) if colour0 is None else colour0.astype(np.float32, copy=True)
         states = np.asarray(states, dtype=np.int64) if self.guide is not None else np.full(n, -1)
         d, w, cos_prev = self.directions.sample(nrm, states, np.asarray(u_first, np.float64),
                                                 np.asarray(u_mix), first=True)
         w = self._above_geometry(w, gnrm, d)
+        if rho0 is not None and self.guide is not None:
+            _to_cycles(rho0, idx, w)
         beta = np.ones((n, 3), np.float32)
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
@@ -338,9 +347,15 @@ class IndirectTracer:
             d, w, cos_prev = self.directions.sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
             w = self._above_geometry(w, gnrm, d)
             q_prev = None
+            ratio = None
+            if rho0 is not None and self.guide is not None:
+                ratio = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 1.0).astype(np.float32)
             if glossy_rows is not None:
-                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta, glossy_states)
+                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta, glossy_states,
+                                                               cycles_ratio=ratio)
                 n_glossy = n_glossy + lobe
+            if ratio is not None:
+                rho0[idx] *= ratio[:, None]
             if p_min is not None:
                 p_ray = np.maximum(cos_prev, 0.0) * INV_PI
                 if q_prev is not None:
@@ -547,10 +562,12 @@ class IndirectTracer:
         return np.flatnonzero(~done)
 
 
-    def _guided_glossy(self, vertex, u, states):
+    def _guided_glossy(self, vertex, u, states, cycles_ratio=None):
         """GUIDED at glossy vertices (:meth:`_sample_glossy`): ``(wo, f cos / p, q, lobe kind)``
         with p = α g_s + (1 - α) p_bsdf at rows with a state (exact; a mirror lobe's sample
-        keeps its delta weight / (1 - α)) and the BSDF alone elsewhere; q is the BSDF density."""
+        keeps its delta weight / (1 - α)) and the BSDF alone elsewhere; q is the BSDF density.
+        ``cycles_ratio`` (k,): receives p / p_bsdf (the mirror's 1 - α), Cycles' weight over
+        this one, at the rows with a state (the clamp's view, :func:`_to_cycles`)."""
         alpha = self.guide_fraction
         has = states >= 0
         guided = has & (u[:, 2] < alpha)
@@ -571,9 +588,13 @@ class IndirectTracer:
             ok = above & (p_mix > 0) & (np.isin(mix, gi) | (pdf[mix] > 0))
             weight[mix] = np.where(ok[:, None], f / np.where(p_mix > 0, p_mix, 1.0)[:, None], 0.0)
             pdf[mix] = np.where(ok, np.maximum(p_bsdf, 1e-30), 0.0)
+            if cycles_ratio is not None:
+                cycles_ratio[mix] = np.where(ok, p_mix / np.maximum(p_bsdf, 1e-30), 1.0)
         mirror = np.flatnonzero(has & (kind == 2))
         if len(mirror):
             weight[mirror] /= max(1.0 - alpha, 1e-12)
+            if cycles_ratio is not None:
+                cycles_ratio[mirror] = max(1.0 - alpha, 1e-12)
         return wo, weight, pdf, kind
 
     # ---- glossy vertices ----------------------------------------------------------------------------
@@ -599,19 +620,23 @@ class IndirectTracer:
                             rows(nrm, g), rows(wi, g), geometric=rows(gnrm, g), blur=blur)
         return GlossyRows(len(tri), g, vertex)
 
-    def _sample_glossy(self, glossy_rows, u, d, w, beta, states=None):
+    def _sample_glossy(self, glossy_rows, u, d, w, beta, states=None, cycles_ratio=None):
         """Directions of the glossy rows drawn from their BSDF (``u``: their uniforms), or in
         GUIDED mode at rows with a state (``states`` of the wavefront, -1: none) from the
         one-sample mixture ``α g_s + (1 - α) p_bsdf`` (u[:, 2] < α picks the guide, else it is
         rescaled to pick the lobe): the weight ``f cos / p`` joins β (w = 1, 0 when absorbed);
         returns ``(d, w, beta, q, lobe)`` with q (k,) float32 the BSDF density of those rays (NaN
         on the other rows; the MIS partition of unity, as next-event estimation uses it) and
-        lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce)."""
+        lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce). ``cycles_ratio``
+        (k,) float32: its glossy rows are set to Cycles' weight over theirs (1 without a guide)."""
         g = np.flatnonzero(glossy_rows.mask)
+        ratio = None if cycles_ratio is None else np.ones(len(g), np.float64)
         if states is not None and np.any(np.take(states, g) >= 0):
-            wo, weight, pdf, kind = self._guided_glossy(glossy_rows.bsdf, rows(u, g), np.take(states, g))
+            wo, weight, pdf, kind = self._guided_glossy(glossy_rows.bsdf, rows(u, g), np.take(states, g), ratio)
         else:
             wo, weight, pdf, kind = glossy_rows.bsdf.sample(rows(u, g), return_lobe=True)
+        if cycles_ratio is not None:
+            cycles_ratio[g] = ratio
         microfacet = kind > 0
         d = d.copy()
         d[g] = wo
@@ -624,6 +649,17 @@ class IndirectTracer:
         lobe = np.zeros(len(d), np.int16)
         lobe[g] = microfacet
         return d, w, beta, q, lobe
+
+
+def _to_cycles(weights, idx, w):
+    """The clamp's weights of the paths ``idx`` (rows of ``weights (n, 3)``, in place) times
+    Cycles' throughput over theirs for the directions just drawn with weights ``w`` (k,): Cycles
+    draws cosine directions (weight 1) where the guide's have w = cos θ / (π p), so the ratio is
+    1 / w = p / (cos θ / π). A contribution c of the path is Cycles' c' = c x ratio, and the
+    estimate c · s(c'), s Cycles' clamp factor, has the mean of Cycles' clamped value
+    E_cosine[s(c') c'] (importance sampling: c / c' = p_cos / p)."""
+    ratio = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 1.0).astype(np.float32)
+    weights[idx] *= ratio[:, None]
 
 
 def _summed(samples):

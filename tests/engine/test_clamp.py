@@ -9,11 +9,12 @@ holds and the DIFFUSE pass divides out again.
 import numpy as np
 import pytest
 
-from bake_scenes import PATCH_ALBEDO, SKY, assert_within, patch_under_sky, small, trace_at
+from bake_scenes import PATCH_ALBEDO, SKY, assert_within, patch_under_sky, small, solved_patch_under_sky, trace_at
 from lmdp_addon import demo_geometry as scenes
 from lmdp_addon.bake import driver
 from lmdp_addon.bake.clamp import SampleClamp, clamp_light, clamp_warnings
 from lmdp_addon.bake.content import BakeContent
+from lmdp_addon.bake.guide import build_guide
 from lmdp_addon.bake.tracer import IndirectTracer
 from lmdp_addon.errors import SceneError
 from lmdp_addon.settings import LightPaths, Settings
@@ -22,11 +23,11 @@ from test_tracer import furnace
 RECEIVER_ALBEDO = 0.7   # patch_under_sky's receiver
 
 
-def receiver_paths(scene, tracer, n, seed=0):
+def receiver_paths(scene, tracer, n, seed=0, state=-1):
     """``(values, stats)`` of n paths from the receiver's centre, with its triangle (its ρ(x0))."""
     rng = np.random.default_rng(seed)
     receiver = int(np.flatnonzero(scene.triangle_object == scene.object_names.index("Receiver"))[0])
-    return tracer.trace(np.zeros((n, 3)), np.tile([0.0, 0.0, 1.0], (n, 1)), np.full(n, -1), rng.random((n, 2)),
+    return tracer.trace(np.zeros((n, 3)), np.tile([0.0, 0.0, 1.0], (n, 1)), np.full(n, state), rng.random((n, 2)),
                         rng.random(n), rng, triangles=np.full(n, receiver))
 
 
@@ -80,6 +81,25 @@ def test_indirect_clamp_at_the_patch_and_direct_clamp_ignored_by_an_indirect_bak
     b, _ = receiver_paths(scene, unclamped, 20_000, seed=4)
     assert_within(a, rho * SKY * F, extra=1e-3 * rho * SKY * F)     # no bounce-0 light in an indirect bake
     assert_within(b, rho * SKY * F, extra=1e-3 * rho * SKY * F)
+
+
+def test_guided_clamps_cycles_samples():
+    """GUIDED draws the receiver's directions from u*, so its contributions vary with the guide's
+    weight cos θ / (π p) where Cycles' (cosine) ones are the constant ρ_patch L; the clamp judges
+    each by Cycles' value (the path's value x p / p_cos) and so keeps the clamped mean of Cycles'
+    samples: the same analytic value as UNGUIDED, though every guided value differs from it."""
+    scene, lmdp = solved_patch_under_sky()
+    guide = build_guide(scene, lmdp)
+    state = guide.states_at(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0]))[0]
+    assert state >= 0
+    F = scenes.point_to_parallel_square_form_factor(1.0, 1.0, (0.0, 0.0))
+    rho = np.asarray(PATCH_ALBEDO)
+    expected = rho * SKY * F * (3 * 0.25 / (RECEIVER_ALBEDO * rho.sum() * SKY))
+    tracer = IndirectTracer(scene, "GUIDED", max_bounces=4, guide=guide, guide_fraction=0.7,
+                            clamp=SampleClamp(indirect=0.25))
+    values, stats = receiver_paths(scene, tracer, 200_000, seed=5, state=state)
+    assert stats.guided_vertices > 0
+    assert_within(values, expected, extra=1e-3 * expected)
 
 
 @pytest.mark.parametrize("bounces", [2, 8])
@@ -137,9 +157,10 @@ def test_light_paths_carry_both_clamps():
 def test_clamp_warnings_name_the_modes_and_light_kinds(cornell):
     assert clamp_warnings(cornell, Settings()) == []
     assert clamp_warnings(cornell, Settings(clamp_indirect=10.0)) == []      # UNGUIDED: Cycles' samples
-    guided = clamp_warnings(cornell, Settings(clamp_indirect=10.0, bake_mode="GUIDED"))
-    assert len(guided) == 1 and "GUIDED" in guided[0] and "indirect clamp 10" in guided[0]
-    assert "Residual" in clamp_warnings(cornell, Settings(clamp_direct=1.0, bake_mode="FINAL_GATHER"))[0]
+    assert clamp_warnings(cornell, Settings(clamp_indirect=10.0, bake_mode="GUIDED")) == []
+    assert clamp_warnings(cornell, Settings(clamp_indirect=10.0, bake_mode="RESIDUAL")) == []
+    gather = clamp_warnings(cornell, Settings(clamp_direct=1.0, bake_mode="FINAL_GATHER"))
+    assert len(gather) == 1 and "direct clamp 1" in gather[0] and "not clamped" in gather[0]
 
 
 @pytest.mark.parametrize("name, value", [("clamp_indirect", -1.0), ("clamp_direct", float("nan"))])
