@@ -73,6 +73,8 @@ class Settings:
     # settings (no scene.lmdp property): LightPaths.apply sets them from the scene's Cycles Light Paths.
     glossy_bounces: int = field(default=-1, metadata={"light_paths": True})  #: Cycles' Glossy bounces
     total_bounces: int = field(default=-1, metadata={"light_paths": True})   #: Cycles' Max Bounces (any kind)
+    #: Cycles' Min Light Bounces: with a clamp, Cycles' Russian roulette starts after it (bake/clamp.py)
+    min_light_bounces: int = field(default=0, metadata={"light_paths": True})
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
@@ -124,15 +126,17 @@ class LightPaths:
     transparent_max_bounces: int = None      #: SCENE: Cycles' Transparent bounces (recorded)
     clamp_indirect: float = 0.0              #: Cycles' Clamping > Indirect Light (0: off)
     clamp_direct: float = 0.0                #: Cycles' Clamping > Direct Light (0: off)
+    min_light_bounces: int = 0               #: SCENE: Cycles' Min Light Bounces (the clamp's roulette)
 
     @classmethod
     def from_cycles(cls, max_bounces, diffuse_bounces, glossy_bounces=None, transparent_max_bounces=None,
-                    clamp_indirect=0.0, clamp_direct=0.0):
+                    clamp_indirect=0.0, clamp_direct=0.0, min_light_bounces=0):
         """The light paths of a scene whose Cycles settings have these values."""
         n = max(0, min(int(max_bounces), int(diffuse_bounces)))
         opt = (lambda v: None if v is None else int(v))
         return cls("SCENE", n, int(max_bounces), int(diffuse_bounces), opt(glossy_bounces),
-                   opt(transparent_max_bounces), _limit(clamp_indirect), _limit(clamp_direct))
+                   opt(transparent_max_bounces), _limit(clamp_indirect), _limit(clamp_direct),
+                   max(int(min_light_bounces), 0))
 
     @classmethod
     def custom(cls, max_bounces, clamp_direct=0.0, clamp_indirect=0.0):
@@ -148,7 +152,8 @@ class LightPaths:
         """``settings`` with ``max_bounces`` = this path length and the two clamps and, for
         SCENE, Cycles' Glossy and Max bounces as ``glossy_bounces`` / ``total_bounces`` (paths
         through glossy surfaces count their glossy bounces apart; CUSTOM: -1, no separate limits)."""
-        clamps = dict(clamp_direct=self.clamp_direct, clamp_indirect=self.clamp_indirect)
+        clamps = dict(clamp_direct=self.clamp_direct, clamp_indirect=self.clamp_indirect,
+                      min_light_bounces=self.min_light_bounces)
         if self.source != "SCENE":
             return replace(settings, max_bounces=self.path_length, glossy_bounces=-1, total_bounces=-1, **clamps)
         glossy = -1 if self.glossy_bounces is None else max(int(self.glossy_bounces), 0)

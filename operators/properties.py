@@ -439,7 +439,7 @@ def light_paths_from_scene(scene):
                                  float(f"{props.clamp_indirect:.7g}"))
     return LightPaths.from_cycles(cycles.max_bounces, cycles.diffuse_bounces, cycles.glossy_bounces,
                                   cycles.transparent_max_bounces, float(f"{cycles.sample_clamp_indirect:.7g}"),
-                                  float(f"{cycles.sample_clamp_direct:.7g}"))
+                                  float(f"{cycles.sample_clamp_direct:.7g}"), cycles.min_light_bounces)
 
 
 def bake_settings_from_scene(scene):

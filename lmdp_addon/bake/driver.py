@@ -319,7 +319,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
                             guide_fraction=settings.guide_fraction, caster=caster, control=control,
                             content=BakeContent.from_settings(settings),
                             glossy_bounces=settings.glossy_bounces, total_bounces=settings.total_bounces,
-                            clamp=SampleClamp.from_settings(settings))
+                            clamp=SampleClamp.from_settings(settings),
+                            min_light_bounces=getattr(settings, "min_light_bounces", 0))
     return tracer, guide, info
 
 

@@ -124,12 +124,13 @@ class IndirectTracer:
                     ``total_bounces`` bounces in all (-1: no separate limit, ``max_bounces``)
     clamp           :class:`~lmdp_addon.bake.clamp.SampleClamp`: Cycles' direct / indirect sample
                     clamp on every light contribution (:meth:`_add`), with Cycles' Russian
-                    roulette (:meth:`_cycles_roulette`); None or both limits 0: no clamp
+                    roulette (:meth:`_cycles_roulette`) after ``min_light_bounces`` (Cycles' Min
+                    Light Bounces); None or both limits 0: no clamp
     """
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
                  guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None,
-                 glossy_bounces=-1, total_bounces=-1, clamp=None):
+                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -152,6 +153,8 @@ class IndirectTracer:
         #: Cycles' sample clamp (None: off). It is a function of each contribution, so with it the
         #: paths also end by Cycles' Russian roulette, whose survivors carry Cycles' throughputs.
         self.clamp = clamp if clamp is not None and clamp.active else None
+        #: Cycles' roulette spares the rays reaching y_k for k <= Min Light Bounces + 1.
+        self.roulette_from = max(int(min_light_bounces), 0) + 2
         self.caster = caster or RayCaster(scene)
         self.lights = EmitterSampler(scene)
         self.lamps = scene.lamps
@@ -279,7 +282,7 @@ class IndirectTracer:
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
             p_min, n_glossy = _take(p_min, h), _take(n_glossy, h)
-            if self.clamp is not None and bounce >= 2:   # Cycles' Russian roulette before y_bounce
+            if self.clamp is not None and bounce >= self.roulette_from:   # Cycles' roulette before y_bounce
                 keep, p_keep = self._cycles_roulette(idx, beta, w, rho0, rng)
                 idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(keep, idx, origin, d, w, beta, tri,
                                                                           dist, bu, bv)
@@ -436,8 +439,8 @@ class IndirectTracer:
             self._add(L, at, sample if beta is None else beta * sample, bounce, rho0, stats)
 
     def _cycles_roulette(self, idx, beta, w, rho0, rng):
-        """Cycles' Russian roulette of the rays that reach y_k, k >= 2 (``intersect_closest``,
-        ``path_state_continuation_probability`` with Min Light Bounces 0): survival probability
+        """Cycles' Russian roulette of the rays that reach y_k, k >= Min Light Bounces + 2
+        (``intersect_closest``, ``path_state_continuation_probability``): survival probability
         ``p = min(1, sqrt(max_c T_c))`` of Cycles' throughput T = ρ(x0) β_{k-1} w_{k-1}, the
         survivors' β divided by p before y_k is shaded. Returns ``(surviving rows, their p)``.
         With the clamp the paths' throughputs must be Cycles' own: the clamp is nonlinear."""

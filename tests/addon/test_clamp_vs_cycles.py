@@ -4,7 +4,7 @@ Scene: the Cornell box with its ceiling light replaced by a 2 cm "Spark" (emissi
 5 cm above the tall box: the floor never sees it, so all its light has bounced, and the paths
 that reach the tall box's top right under the spark carry rare, very bright contributions, the
 fireflies the clamp is for. Light paths: the demo's 8 / 8 on both sides, Cycles' defaults for
-everything else (light tree, Min Light Bounces 0).
+everything else (light tree, Min Light Bounces 0 unless a test sets it).
 
 A clamp is a nonlinear function of each contribution, so the clamped means agree only where the
 samples are distributed as Cycles'. With the clamp the engine therefore also ends paths by
@@ -49,7 +49,7 @@ def spark_box():
 
 def clamped_reference(lmdp_ext, demo, name, pass_filter, samples, seeds=(1, 2)):
     """Cycles' DIFFUSE bakes of ``name`` with the scene's clamps, cached under a key of the scene,
-    the object, the settings, both clamps and the bpy version; (len(seeds), R, R, 3)."""
+    the object, the settings, both clamps, Min Light Bounces and the bpy version; (len(seeds), R, R, 3)."""
     extract = lmdp_ext.sub("operators.adapters.extract")
     checks = lmdp_ext.sub("lmdp_addon.bake.checks")
     cycles = bpy.context.scene.cycles
@@ -58,7 +58,8 @@ def clamped_reference(lmdp_ext, demo, name, pass_filter, samples, seeds=(1, 2)):
     for seed in seeds:
         key = "|".join(map(str, (checks.scene_fingerprint(arrays), name, RESOLUTION, samples, seed,
                                  cycles.max_bounces, cycles.diffuse_bounces, cycles.sample_clamp_direct,
-                                 cycles.sample_clamp_indirect, sorted(pass_filter), bpy.app.version_string)))
+                                 cycles.sample_clamp_indirect, cycles.min_light_bounces, sorted(pass_filter),
+                                 bpy.app.version_string)))
         path = os.path.join(CACHE, hashlib.sha1(key.encode()).hexdigest()[:20] + ".npy")
         if not os.path.exists(path):
             px = demo.bake_cycles(bpy.context, bpy.data.objects[name], 'DIFFUSE', tuple(pass_filter), RESOLUTION,
@@ -114,6 +115,24 @@ def test_indirect_clamp_matches_cycles_on_the_spark_box(fresh_scene, lmdp_ext, d
     scene.cycles.sample_clamp_indirect = 0.0
     unclamped, _ = default_bake(lmdp_ext, "Floor", 256, "UNGUIDED")
     agree_clamped(ob, refs, unclamped, f"spark box floor, indirect clamp 10, {mode}")
+
+
+def test_min_light_bounces_delay_the_roulette_as_in_cycles(fresh_scene, lmdp_ext, demo):
+    """Cycles' Min Light Bounces 3 spares the paths' first bounces from its Russian roulette, so
+    fewer amplified paths reach the clamp (Cycles' clamped floor rises 5.5 %): the bake reads it
+    from the scene and agrees again."""
+    scene = spark_box()
+    scene.cycles.sample_clamp_indirect = 10.0
+    scene.cycles.min_light_bounces = 3
+    refs = clamped_reference(lmdp_ext, demo, "Floor", ("INDIRECT",), 4096)
+    ob, result = default_bake(lmdp_ext, "Floor", 4096)
+    assert result.settings["min_light_bounces"] == 3 and result.stats()["light_paths"]["min_light_bounces"] == 3
+    scene.cycles.sample_clamp_indirect = 0.0
+    unclamped, _ = default_bake(lmdp_ext, "Floor", 256)
+    agree_clamped(ob, refs, unclamped, "spark box floor, indirect clamp 10, Min Light Bounces 3")
+    scene.cycles.sample_clamp_indirect, scene.cycles.min_light_bounces = 10.0, 0
+    early, _ = default_bake(lmdp_ext, "Floor", 4096)
+    assert np.all(ob.value.mean(axis=0) > 1.03 * early.value.mean(axis=0))
 
 
 def test_indirect_clamp_of_a_point_light_matches_cycles(fresh_scene, lmdp_ext, demo):

@@ -64,6 +64,9 @@ def test_a_new_scene_follows_cycles_default_light_paths(fresh_scene, lmdp_ext):
     assert (paths.clamp_direct, paths.clamp_indirect) == (cycles.sample_clamp_direct, cycles.sample_clamp_indirect) \
         == (0.0, 10.0)
     assert (settings.clamp_direct, settings.clamp_indirect) == (0.0, 10.0)
+    assert paths.min_light_bounces == settings.min_light_bounces == cycles.min_light_bounces == 0
+    cycles.min_light_bounces = 2
+    assert props.bake_settings_from_scene(fresh_scene)[0].min_light_bounces == 2
     assert props.settings_from_scene(fresh_scene).max_bounces == 8   # scene.lmdp itself is unchanged
 
 

@@ -114,6 +114,10 @@ def test_cycles_roulette_of_the_clamp_is_unbiased(bounces):
     _, plain = trace_at(IndirectTracer(scene, "UNGUIDED", max_bounces=bounces), (0.1, 0.2, -0.5), (0, 0, 1),
                         100_000, seed=bounces)
     assert stats.vertices < plain.vertices
+    late = IndirectTracer(scene, "UNGUIDED", max_bounces=bounces, clamp=SampleClamp(indirect=1e9), min_light_bounces=3)
+    values, spared = trace_at(late, (0.1, 0.2, -0.5), (0, 0, 1), 100_000, seed=bounces + 1)
+    assert_within(values[:, 0], sum(0.5 ** k for k in range(1, bounces + 1)))
+    assert spared.vertices > stats.vertices          # Min Light Bounces 3: no roulette before y_5
 
 
 def test_no_clamp_is_the_unclamped_bake_bit_for_bit(cornell):
