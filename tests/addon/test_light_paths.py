@@ -67,6 +67,11 @@ def test_a_new_scene_follows_cycles_default_light_paths(fresh_scene, lmdp_ext):
     assert paths.min_light_bounces == settings.min_light_bounces == cycles.min_light_bounces == 0
     cycles.min_light_bounces = 2
     assert props.bake_settings_from_scene(fresh_scene)[0].min_light_bounces == 2
+    panel = lmdp_ext.sub("operators.ui.panel")   # the Bake section's status line under Light Paths
+    assert panel._light_paths_line(fresh_scene) == ("Cycles: 4 bounces (Max 12, Diffuse 4), indirect clamped at 10 "
+                                                   "(biased, like Cycles)")
+    cycles.sample_clamp_indirect = 0.0
+    assert panel._light_paths_line(fresh_scene).endswith("Diffuse 4), no clamp")
     assert props.settings_from_scene(fresh_scene).max_bounces == 8   # scene.lmdp itself is unchanged
 
 
