@@ -117,6 +117,7 @@ def test_indirect_clamp_matches_cycles_on_the_spark_box(fresh_scene, lmdp_ext, d
     agree_clamped(ob, refs, unclamped, f"spark box floor, indirect clamp 10, {mode}")
 
 
+@pytest.mark.slow
 def test_min_light_bounces_delay_the_roulette_as_in_cycles(fresh_scene, lmdp_ext, demo):
     """Cycles' Min Light Bounces 3 spares the paths' first bounces from its Russian roulette, so
     fewer amplified paths reach the clamp (Cycles' clamped floor rises 5.5 %): the bake reads it
