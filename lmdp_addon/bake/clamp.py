@@ -90,7 +90,8 @@ def clamp_warnings(scene, settings):
     kinds = [name for name, present in (
         ("emissive meshes", bool(np.any(scene.is_emissive()))),
         ("lights", not scene.lamps.empty),
-        ("the world's environment map", getattr(scene, "environment", None) is not None)) if present]
+        ("the world", getattr(scene, "environment", None) is not None
+         or bool(np.any(np.asarray(scene.world_radiance) > 0)))) if present]
     if len(kinds) > 1:
         out.append(f"The sample clamp ({what}) sees one light sample of each of {', '.join(kinds)} at a "
                    "time, where Cycles draws one sample among all of them: in a scene with several kinds of "

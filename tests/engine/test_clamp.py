@@ -172,3 +172,12 @@ def test_a_negative_or_nan_clamp_is_refused_naming_the_setting(cornell, name, va
     label = {"clamp_indirect": "Clamp Indirect", "clamp_direct": "Clamp Direct"}[name]
     with pytest.raises(SceneError, match=f"{label} must be 0 \\(off\\) or a positive"):
         driver.bake(cornell, ["Floor"], small(**{name: value}))
+
+
+def test_several_kinds_of_light_are_named_once(cornell):
+    """The Cornell box's emitter and a lit world: Cycles draws one light sample among both."""
+    from dataclasses import replace
+    lit = replace(cornell, world_radiance=np.array([0.5, 0.5, 0.5]))
+    warnings = clamp_warnings(lit, Settings(clamp_indirect=10.0))
+    assert len(warnings) == 1 and "emissive meshes, the world" in warnings[0]
+    assert clamp_warnings(cornell, Settings(clamp_indirect=10.0)) == []
