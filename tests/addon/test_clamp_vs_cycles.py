@@ -155,19 +155,22 @@ def test_indirect_clamp_of_a_point_light_matches_cycles(fresh_scene, lmdp_ext, d
     agree_clamped(ob, refs, unclamped, "spark box floor lit by a point light, indirect clamp 10")
 
 
-def test_indirect_clamp_on_the_glossy_box_matches_cycles(fresh_scene, lmdp_ext, demo):
+@pytest.mark.parametrize("mode", ["UNGUIDED", "GUIDED"])
+def test_indirect_clamp_on_the_glossy_box_matches_cycles(fresh_scene, lmdp_ext, demo, mode):
     """GLOSSY_BOX (a Principled glossy checker floor and a metallic sphere): paths through its
     glossy vertices sample the BSDF as Cycles does, so their clamped contributions agree too
-    (indirect clamp 0.5, 15..21 % below the unclamped value)."""
+    (indirect clamp 0.5, 15..21 % below the unclamped value); GUIDED mixes the guide with the
+    BSDF there, and the clamp sees Cycles' BSDF sample through p_mix / p_bsdf."""
     assert bpy.ops.lmdp.add_demo_scene(kind='GLOSSY_BOX') == {'FINISHED'}
     scene = bpy.context.scene
     scene.cycles.sample_clamp_indirect = 0.5
     refs = clamped_reference(lmdp_ext, demo, "Floor", ("INDIRECT",), 2048)
-    ob, result = default_bake(lmdp_ext, "Floor", 2048)
+    scene.lmdp.point_count = 1024
+    ob, result = default_bake(lmdp_ext, "Floor", 2048, mode)
     assert result.stats()["light_paths"]["clamp_indirect"] == 0.5
     scene.cycles.sample_clamp_indirect = 0.0
     unclamped, _ = default_bake(lmdp_ext, "Floor", 512)
-    agree_clamped(ob, refs, unclamped, "glossy box floor, indirect clamp 0.5")
+    agree_clamped(ob, refs, unclamped, f"glossy box floor, indirect clamp 0.5, {mode}")
 
 
 def test_direct_clamp_matches_cycles_on_a_direct_indirect_bake(fresh_scene, lmdp_ext, demo):
