@@ -87,15 +87,18 @@ def clamp_warnings(scene, settings):
                    "the first bounce comes from the solution as an expected value and is not clamped, so the "
                    "lightmap is brighter than Cycles' clamped bake where Cycles clips those paths "
                    "(Unguided, Guided or Residual clamp as Cycles does)")
+    lamps = len(scene.lamps)
     kinds = [name for name, present in (
         ("emissive meshes", bool(np.any(scene.is_emissive()))),
-        ("lights", not scene.lamps.empty),
+        (f"{lamps} lights" if lamps > 1 else "the light", lamps > 0),
         ("the world", getattr(scene, "environment", None) is not None
          or bool(np.any(np.asarray(scene.world_radiance) > 0)))) if present]
-    if len(kinds) > 1:
-        out.append(f"The sample clamp ({what}) sees one light sample of each of {', '.join(kinds)} at a "
-                   "time, where Cycles draws one sample among all of them: in a scene with several kinds of "
-                   "light the clamped lightmap can differ from Cycles' clamped bake")
+    if len(kinds) > 1 or lamps > 1:
+        out.append(f"The sample clamp ({what}) sees the light samples of {' and '.join(kinds)} apart "
+                   + ("(one of every light) " if lamps > 1 else "")
+                   + "where Cycles draws one sample among all its lights and divides it by that light's "
+                   "probability: with several lights the clamped lightmap can differ from Cycles' clamped bake "
+                   "(by a few per cent; one light agrees)")
     return out
 
 

@@ -179,5 +179,11 @@ def test_several_kinds_of_light_are_named_once(cornell):
     from dataclasses import replace
     lit = replace(cornell, world_radiance=np.array([0.5, 0.5, 0.5]))
     warnings = clamp_warnings(lit, Settings(clamp_indirect=10.0))
-    assert len(warnings) == 1 and "emissive meshes, the world" in warnings[0]
+    assert len(warnings) == 1 and "emissive meshes and the world" in warnings[0]
     assert clamp_warnings(cornell, Settings(clamp_indirect=10.0)) == []
+    from lmdp_addon.lamps import POINT, Lamps
+    two = replace(cornell, triangle_emission=np.zeros_like(cornell.triangle_emission),
+                  lamps=Lamps(names=["A", "B"], kind=[POINT, POINT], position=[[0, 0, 0.9], [0.2, 0, 0.9]],
+                              strength=[[5.0] * 3] * 2))
+    warnings = clamp_warnings(two, Settings(clamp_indirect=10.0))
+    assert len(warnings) == 1 and "2 lights" in warnings[0] and "one of every light" in warnings[0]
