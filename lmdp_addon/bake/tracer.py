@@ -243,14 +243,14 @@ class IndirectTracer:
         d, w, cos_prev = self.directions.sample(nrm, states, np.asarray(u_first, np.float64),
                                                 np.asarray(u_mix), first=True)
         w = self._above_geometry(w, gnrm, d)
-        if rho0 is not None and self.guide is not None:
-            _to_cycles(rho0, idx, w)
         beta = np.ones((n, 3), np.float32)
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
         if self.content.direct:   # ---- direct light at x0: NEE here, MIS hits of ω0 below ----
             samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats)
             self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
+        if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
+            _to_cycles(rho0, idx, w)
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays

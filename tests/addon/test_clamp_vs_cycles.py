@@ -173,16 +173,19 @@ def test_indirect_clamp_on_the_glossy_box_matches_cycles(fresh_scene, lmdp_ext, 
     agree_clamped(ob, refs, unclamped, f"glossy box floor, indirect clamp 0.5, {mode}")
 
 
-def test_direct_clamp_matches_cycles_on_a_direct_indirect_bake(fresh_scene, lmdp_ext, demo):
+@pytest.mark.parametrize("mode", ["UNGUIDED", "GUIDED"])
+def test_direct_clamp_matches_cycles_on_a_direct_indirect_bake(fresh_scene, lmdp_ext, demo, mode):
     """The ceiling above the spark, direct + indirect, Cycles' direct clamp 0.5 (indirect off):
     the light samples and the MIS-weighted hits of the texel's own rays are clamped at the
-    direct limit (25 % below the unclamped value), as in Cycles' bake."""
+    direct limit (25 % below the unclamped value), as in Cycles' bake. GUIDED: the texel's light
+    sample does not depend on its guided direction (-2.7..-3.1 % when it was judged with it)."""
     scene = spark_box()
     scene.cycles.sample_clamp_direct = 0.5
     refs = clamped_reference(lmdp_ext, demo, "Ceiling", ("DIRECT", "INDIRECT"), 1024)
-    ob, result = default_bake(lmdp_ext, "Ceiling", 1024, bake_content="DIRECT_INDIRECT")
+    scene.lmdp.point_count = 1024
+    ob, result = default_bake(lmdp_ext, "Ceiling", 1024, mode, bake_content="DIRECT_INDIRECT")
     paths = result.stats()["light_paths"]
     assert (paths["clamp_direct"], paths["clamp_indirect"]) == (0.5, 0.0)
     scene.cycles.sample_clamp_direct = 0.0
     unclamped, _ = default_bake(lmdp_ext, "Ceiling", 256, bake_content="DIRECT_INDIRECT")
-    agree_clamped(ob, refs, unclamped, "spark box ceiling, direct + indirect, direct clamp 0.5")
+    agree_clamped(ob, refs, unclamped, f"spark box ceiling, direct + indirect, direct clamp 0.5, {mode}")
