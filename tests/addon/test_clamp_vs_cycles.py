@@ -8,8 +8,7 @@ everything else (light tree, Min Light Bounces 0 unless a test sets it).
 
 A clamp is a nonlinear function of each contribution, so the clamped means agree only where the
 samples are distributed as Cycles'. With the clamp the engine therefore also ends paths by
-Cycles' Russian roulette (``IndirectTracer._cycles_roulette``): without it the clamped floor came
-out +7 % above Cycles' (16 px, 2 x 4096 / 4096 samples, sigma 0.5 %), with it +0.1..+0.6 %.
+Cycles' Russian roulette (``IndirectTracer._cycles_roulette``; docs/design.md, "Sample clamp").
 Tolerances as in ``test_bake_vs_cycles``: the mean within 2 % and within 5 standard errors of both
 estimates (engine batches, Cycles' two seeds). Each test also shows that the clamp matters: the
 unclamped bake is more than 10 % away.
@@ -101,7 +100,7 @@ def test_indirect_clamp_matches_cycles_on_the_spark_box(fresh_scene, lmdp_ext, d
     unclamped value): the default bake follows the scene's clamp and agrees with Cycles'
     clamped bake. GUIDED's samples differ from Cycles' (drawn from u*): its clamp judges each by
     the value Cycles' cosine sample of the same path would have (``tracer._to_cycles``), which
-    keeps Cycles' clamped mean (+5..7 % above it without). RESIDUAL clamps the same cosine paths;
+    keeps Cycles' clamped mean. RESIDUAL clamps the same cosine paths;
     its control variate is subtracted unclamped and added back through its own mean, so it
     estimates the same clamped value. Both solve the scene first (a first bake just works)."""
     scene = spark_box()
@@ -178,7 +177,7 @@ def test_direct_clamp_matches_cycles_on_a_direct_indirect_bake(fresh_scene, lmdp
     """The ceiling above the spark, direct + indirect, Cycles' direct clamp 0.5 (indirect off):
     the light samples and the MIS-weighted hits of the texel's own rays are clamped at the
     direct limit (25 % below the unclamped value), as in Cycles' bake. GUIDED: the texel's light
-    sample does not depend on its guided direction (-2.7..-3.1 % when it was judged with it)."""
+    sample is judged without its guided direction's ratio (it does not depend on it)."""
     scene = spark_box()
     scene.cycles.sample_clamp_direct = 0.5
     refs = clamped_reference(lmdp_ext, demo, "Ceiling", ("DIRECT", "INDIRECT"), 1024)
