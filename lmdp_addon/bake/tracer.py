@@ -250,7 +250,7 @@ class IndirectTracer:
             samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats)
             self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
         if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
-            _to_cycles(rho0, idx, w)
+            _to_cycles(rho0, idx, _cosine_ratio(w))
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
@@ -352,13 +352,13 @@ class IndirectTracer:
             q_prev = None
             ratio = None
             if rho0 is not None and self.guide is not None:
-                ratio = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 1.0).astype(np.float32)
+                ratio = _cosine_ratio(w)
             if glossy_rows is not None:
                 d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta, glossy_states,
                                                                cycles_ratio=ratio)
                 n_glossy = n_glossy + lobe
             if ratio is not None:
-                rho0[idx] *= ratio[:, None]
+                _to_cycles(rho0, idx, ratio)
             if p_min is not None:
                 p_ray = np.maximum(cos_prev, 0.0) * INV_PI
                 if q_prev is not None:
@@ -654,14 +654,19 @@ class IndirectTracer:
         return d, w, beta, q, lobe
 
 
-def _to_cycles(weights, idx, w):
+def _cosine_ratio(w):
+    """Cycles' weight over the path's for directions drawn with weights ``w (k,)``: Cycles draws
+    cosine directions (weight 1) where the guide's have w = cos θ / (π p), so 1 / w = p / (cos θ
+    / π) (1 where w = 0: those paths end)."""
+    return np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 1.0).astype(np.float32)
+
+
+def _to_cycles(weights, idx, ratio):
     """The clamp's weights of the paths ``idx`` (rows of ``weights (n, 3)``, in place) times
-    Cycles' throughput over theirs for the directions just drawn with weights ``w`` (k,): Cycles
-    draws cosine directions (weight 1) where the guide's have w = cos θ / (π p), so the ratio is
-    1 / w = p / (cos θ / π). A contribution c of the path is Cycles' c' = c x ratio, and the
-    estimate c · s(c'), s Cycles' clamp factor, has the mean of Cycles' clamped value
-    E_cosine[s(c') c'] (importance sampling: c / c' = p_cos / p)."""
-    ratio = np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 1.0).astype(np.float32)
+    ``ratio (k,)``, Cycles' throughput over theirs for the directions just drawn
+    (:func:`_cosine_ratio`; at glossy vertices p / p_bsdf). A contribution c of the path is
+    Cycles' c' = c x Π ratio, and the estimate c · s(c'), s Cycles' clamp factor, has the mean of
+    Cycles' clamped value E_Cycles[s(c') c'] (importance sampling: c / c' = p_Cycles / p)."""
     weights[idx] *= ratio[:, None]
 
 
