@@ -49,6 +49,9 @@ class Settings:
     guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
     max_bounces: int = 8              #: path length N of the tracer (Russian roulette after 3);
                                       #: the Blender layer puts LightPaths.path_length here
+    clamp_direct: float = 0.0         #: Cycles' sample clamp of light reaching the texel directly
+                                      #: (0: off; bake/clamp.py); SCENE: the scene's, by LightPaths
+    clamp_indirect: float = 0.0       #: ... of light after a bounce (0: off); SCENE: the scene's
     # Lightmap content and output
     bake_content: str = "INDIRECT"    #: 'INDIRECT' or 'DIRECT_INDIRECT' (BAKE_CONTENTS)
     multiply_color: bool = False      #: times the texel's diffuse colour (Cycles' COLOR filter)
@@ -70,6 +73,8 @@ class Settings:
     # settings (no scene.lmdp property): LightPaths.apply sets them from the scene's Cycles Light Paths.
     glossy_bounces: int = field(default=-1, metadata={"light_paths": True})  #: Cycles' Glossy bounces
     total_bounces: int = field(default=-1, metadata={"light_paths": True})   #: Cycles' Max Bounces (any kind)
+    #: Cycles' Min Light Bounces: with a clamp, Cycles' Russian roulette starts after it (bake/clamp.py)
+    min_light_bounces: int = field(default=0, metadata={"light_paths": True})
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)
@@ -105,9 +110,12 @@ class LightPaths:
     path length is N = min(max_bounces, diffuse_bounces) (measured against Cycles' bakes:
     docs/design.md); on glossy surfaces (``bsdf``) a path counts its glossy bounces apart as
     Cycles does: at most ``glossy_bounces`` glossy, N diffuse and ``max_bounces`` in all
-    (``apply``). Transparent surfaces absorb, so ``transparent_max_bounces`` is recorded only. ``clamp_indirect`` (Cycles'
-    ``sample_clamp_indirect``) is never applied: the engine's value is the unclamped one.
-    ``CUSTOM``: N = ``Settings.max_bounces``.
+    (``apply``). Transparent surfaces absorb, so ``transparent_max_bounces`` is recorded only.
+    ``clamp_direct`` / ``clamp_indirect`` are Cycles' ``sample_clamp_direct`` /
+    ``sample_clamp_indirect`` (0: off), applied per light contribution as Cycles does
+    (``bake/clamp.py``): biased by design, like Cycles.
+    ``CUSTOM``: N = ``Settings.max_bounces`` and the clamps of ``Settings.clamp_direct`` /
+    ``clamp_indirect`` (the add-on's own settings, 0 by default).
     """
 
     source: str                              #: 'SCENE' or 'CUSTOM'
@@ -116,53 +124,69 @@ class LightPaths:
     diffuse_bounces: int = None              #: SCENE: Cycles' Diffuse bounces
     glossy_bounces: int = None               #: SCENE: Cycles' Glossy bounces (recorded)
     transparent_max_bounces: int = None      #: SCENE: Cycles' Transparent bounces (recorded)
-    clamp_indirect: float = 0.0              #: SCENE: Cycles' indirect clamp (not applied)
+    clamp_indirect: float = 0.0              #: Cycles' Clamping > Indirect Light (0: off)
+    clamp_direct: float = 0.0                #: Cycles' Clamping > Direct Light (0: off)
+    min_light_bounces: int = 0               #: SCENE: Cycles' Min Light Bounces (the clamp's roulette)
 
     @classmethod
     def from_cycles(cls, max_bounces, diffuse_bounces, glossy_bounces=None, transparent_max_bounces=None,
-                    clamp_indirect=0.0):
+                    clamp_indirect=0.0, clamp_direct=0.0, min_light_bounces=0):
         """The light paths of a scene whose Cycles settings have these values."""
         n = max(0, min(int(max_bounces), int(diffuse_bounces)))
         opt = (lambda v: None if v is None else int(v))
         return cls("SCENE", n, int(max_bounces), int(diffuse_bounces), opt(glossy_bounces),
-                   opt(transparent_max_bounces), float(clamp_indirect))
+                   opt(transparent_max_bounces), _limit(clamp_indirect), _limit(clamp_direct),
+                   max(int(min_light_bounces), 0))
 
     @classmethod
-    def custom(cls, max_bounces):
-        return cls("CUSTOM", int(max_bounces))
+    def custom(cls, max_bounces, clamp_direct=0.0, clamp_indirect=0.0):
+        return cls("CUSTOM", int(max_bounces), clamp_indirect=_limit(clamp_indirect),
+                   clamp_direct=_limit(clamp_direct))
 
     @property
-    def clamp_ignored(self):
-        """The scene asks Cycles to clamp indirect light and the engine does not."""
-        return self.source == "SCENE" and self.clamp_indirect > 0
+    def clamped(self):
+        """Some contributions are clamped (either limit is on)."""
+        return self.clamp_direct > 0 or self.clamp_indirect > 0
 
     def apply(self, settings):
-        """``settings`` with ``max_bounces`` = this path length and, for SCENE, Cycles' Glossy and
-        Max bounces as ``glossy_bounces`` / ``total_bounces`` (paths through glossy surfaces
-        count their glossy bounces apart; CUSTOM: -1, no separate limits)."""
+        """``settings`` with ``max_bounces`` = this path length and the two clamps and, for
+        SCENE, Cycles' Glossy and Max bounces as ``glossy_bounces`` / ``total_bounces`` (paths
+        through glossy surfaces count their glossy bounces apart; CUSTOM: -1, no separate limits)."""
+        clamps = dict(clamp_direct=self.clamp_direct, clamp_indirect=self.clamp_indirect,
+                      min_light_bounces=self.min_light_bounces)
         if self.source != "SCENE":
-            return replace(settings, max_bounces=self.path_length, glossy_bounces=-1, total_bounces=-1)
+            return replace(settings, max_bounces=self.path_length, glossy_bounces=-1, total_bounces=-1, **clamps)
         glossy = -1 if self.glossy_bounces is None else max(int(self.glossy_bounces), 0)
         return replace(settings, max_bounces=self.path_length, glossy_bounces=glossy,
-                       total_bounces=max(int(self.max_bounces), self.path_length))
+                       total_bounces=max(int(self.max_bounces), self.path_length), **clamps)
 
     def warnings(self):
-        if not self.clamp_ignored:
-            return []
-        return [f"The scene's Cycles indirect clamp ({self.clamp_indirect:g}, Render Properties > Light Paths > "
-                "Clamping > Indirect Light) is not applied: the lightmap is the unclamped, unbiased value, "
-                "brighter than a Cycles bake that clamps; set the clamp to 0 to compare with Cycles"]
+        """Nothing to warn about the light paths themselves (the clamp's per-mode caveats are
+        ``bake.checks``'); kept for callers that collect every stage's warnings."""
+        return []
+
+    def clamp_summary(self):
+        """'no clamp', or which limits clamp: 'indirect clamped at 10 (biased, like Cycles)'."""
+        if not self.clamped:
+            return "no clamp"
+        parts = [f"{kind} clamped at {value:g}" for kind, value in
+                 (("direct", self.clamp_direct), ("indirect", self.clamp_indirect)) if value > 0]
+        return " and ".join(parts) + " (biased, like Cycles)"
 
     def summary(self):
         """One line for the operator's report."""
         if self.source == "CUSTOM":
-            return f"light paths: custom, {self.path_length} bounces"
-        clamp = f"clamp {self.clamp_indirect:g} not applied" if self.clamp_ignored else "no clamp"
+            return f"light paths: custom, {self.path_length} bounces, {self.clamp_summary()}"
         return (f"light paths: the scene's (Cycles max {self.max_bounces}, diffuse {self.diffuse_bounces}) "
-                f"-> {self.path_length} bounces, {clamp}")
+                f"-> {self.path_length} bounces, {self.clamp_summary()}")
 
     def as_dict(self):
         d = asdict(self)
-        d["clamp_applied"] = False
-        d["clamp_ignored"] = self.clamp_ignored
+        d["clamp_applied"] = self.clamped
         return d
+
+
+def _limit(value):
+    """A clamp limit as Cycles reads it: a float, 0 (off) for anything not above 0."""
+    value = float(value or 0.0)
+    return value if value > 0 else 0.0

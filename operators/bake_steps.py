@@ -20,8 +20,9 @@
 The path length comes from the scene's Cycles Light Paths or ``scene.lmdp.max_bounces``
 (``scene.lmdp.light_paths``): the operators read ``(settings, light_paths)`` with
 ``properties.bake_settings_from_scene`` and hand the :class:`~lmdp_addon.settings.LightPaths` to
-:func:`bake_inputs`, which refuses a path length of 0 and warns about an indirect clamp it does not
-apply; the result records them (``bake_stats.json`` "light_paths", the report's last words).
+:func:`bake_inputs`, which refuses a path length of 0; the light paths' clamps reach the engine in
+the settings (``clamp_direct`` / ``clamp_indirect``); the result records them (``bake_stats.json``
+"light_paths", the report's last words).
 
 Objects are identified by their key, ``name_full`` (the name, or "Floor [library.blend]" for a
 linked object), so a linked object never writes into the lightmap of a local namesake.
@@ -80,7 +81,7 @@ class BakedLightmaps:
 
 def check_light_paths(light_paths):
     """Raise ``SceneError`` when the scene's Cycles Light Paths allow no diffuse bounce (Cycles'
-    indirect bake would be black); return the light paths' warnings (the indirect clamp)."""
+    indirect bake would be black); return the light paths' warnings."""
     if light_paths is None:
         return []
     if light_paths.path_length < 1:

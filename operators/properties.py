@@ -46,9 +46,9 @@ BAKE_MODE_ITEMS = (
 LIGHT_PATHS_ITEMS = (
     ("SCENE", "Scene",
      "Follow the scene's Cycles Light Paths as Cycles' own bake does: path length = the smaller of "
-     "Max Bounces (Total) and Diffuse (bounces); Cycles' indirect clamp is not applied"),
+     "Max Bounces (Total) and Diffuse (bounces), and Cycles' Clamping (Direct / Indirect Light)"),
     ("CUSTOM", "Custom",
-     "Use Max Bounces below as the path length (bounces), whatever the scene's Cycles Light Paths"),
+     "Use Max Bounces and the clamps below, whatever the scene's Cycles Light Paths"),
 )
 BAKE_CONTENT_ITEMS = (
     ("INDIRECT", "Indirect",
@@ -213,6 +213,20 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
         description="Light Paths Custom: path length of the tracer, as Cycles' Max Bounces with Diffuse "
                     "bounces at least as many; Russian roulette starts after 3 (bounces)",
         default=_DEFAULTS.max_bounces, min=1, max=1024, soft_max=64,
+    )
+    clamp_direct: FloatProperty(
+        name="Clamp Direct",
+        description="Light Paths Custom: as Cycles' Clamping > Direct Light, the largest sum of the three "
+                    "channels of one sample of light reaching the surface straight from a light, divided "
+                    "by 3 (radiance); brighter samples are scaled down to it (biased). 0 turns it off",
+        default=_DEFAULTS.clamp_direct, min=0.0, max=1e6, soft_max=100.0,
+    )
+    clamp_indirect: FloatProperty(
+        name="Clamp Indirect",
+        description="Light Paths Custom: as Cycles' Clamping > Indirect Light, the largest sum of the three "
+                    "channels of one sample of light that bounced first, divided by 3 (radiance); brighter "
+                    "samples are scaled down to it, which removes fireflies (biased). 0 turns it off",
+        default=_DEFAULTS.clamp_indirect, min=0.0, max=1e6, soft_max=100.0,
     )
     # -- Lightmap content and output (bake_content ... output_8bit) --------------------------------
     bake_content: EnumProperty(
@@ -416,18 +430,21 @@ def settings_from_scene(scene):
 
 def light_paths_from_scene(scene):
     """The :class:`~lmdp_addon.settings.LightPaths` of a bake of ``scene``: ``scene.lmdp.light_paths``
-    'SCENE' reads the scene's Cycles Light Paths (``scene.cycles``), 'CUSTOM' ``scene.lmdp.max_bounces``."""
+    'SCENE' reads the scene's Cycles Light Paths (``scene.cycles``: bounces and both clamps),
+    'CUSTOM' ``scene.lmdp.max_bounces``, ``clamp_direct`` and ``clamp_indirect``."""
     props = scene.lmdp
     cycles = getattr(scene, "cycles", None)
     if props.light_paths == 'CUSTOM' or cycles is None:
-        return LightPaths.custom(props.max_bounces)
+        return LightPaths.custom(props.max_bounces, float(f"{props.clamp_direct:.7g}"),
+                                 float(f"{props.clamp_indirect:.7g}"))
     return LightPaths.from_cycles(cycles.max_bounces, cycles.diffuse_bounces, cycles.glossy_bounces,
-                                  cycles.transparent_max_bounces, float(f"{cycles.sample_clamp_indirect:.7g}"))
+                                  cycles.transparent_max_bounces, float(f"{cycles.sample_clamp_indirect:.7g}"),
+                                  float(f"{cycles.sample_clamp_direct:.7g}"), cycles.min_light_bounces)
 
 
 def bake_settings_from_scene(scene):
     """``(Settings, LightPaths)`` of a bake of ``scene``: :func:`settings_from_scene` with
-    ``max_bounces`` = the path length of :func:`light_paths_from_scene`."""
+    ``max_bounces`` = the path length and the clamps of :func:`light_paths_from_scene`."""
     light_paths = light_paths_from_scene(scene)
     return light_paths.apply(settings_from_scene(scene)), light_paths
 

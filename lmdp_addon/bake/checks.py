@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import BudgetError, SceneError, StageOrderError
 from ..settings import BAKE_CONTENTS, BAKE_MODES, OUTPUT_8BIT, OUTPUT_FORMATS
+from .clamp import check_clamp, clamp_warnings
 from .memory import estimate_bake_bytes
 from .resolution import check_resolution_settings, object_resolutions
 from .texels import rasterize_texels, texel_count_bound
@@ -183,6 +184,7 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
                            "diffuse hits (its bias grows with what glossy surfaces reflect there)"
                            if settings.bake_mode == "FINAL_GATHER" else
                            "the guide is mixed with their BSDF there, so the bake stays unbiased"))
+    warnings += clamp_warnings(scene, settings)
     if settings.bake_mode == "GUIDED" and float(settings.guide_fraction) >= 1.0:
         warnings.append("Guide fraction 1 never samples the cosine lobe: the bake is biased where "
                         "the optimal policy is zero; a value below 1 keeps it unbiased")
@@ -246,6 +248,7 @@ def _check_settings(settings, names):
     if int(settings.max_bounces) < 1:
         raise SceneError(f"Max bounces must be at least 1 for indirect light (got {settings.max_bounces})")
     check_resolution_settings(settings)
+    check_clamp(settings)
     if not names:
         raise SceneError("Select at least one mesh object to bake")
     return R

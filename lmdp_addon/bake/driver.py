@@ -42,6 +42,7 @@ from ..farm import session as farm_session
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
 from .checks import check_bake, check_texels, object_index, object_texels
+from .clamp import SampleClamp
 from .content import BakeContent
 from .gather import build_gather
 from .guide import build_guide
@@ -317,7 +318,9 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
                             guide_fraction=settings.guide_fraction, caster=caster, control=control,
                             content=BakeContent.from_settings(settings),
-                            glossy_bounces=settings.glossy_bounces, total_bounces=settings.total_bounces)
+                            glossy_bounces=settings.glossy_bounces, total_bounces=settings.total_bounces,
+                            clamp=SampleClamp.from_settings(settings),
+                            min_light_bounces=getattr(settings, "min_light_bounces", 0))
     return tracer, guide, info
 
 

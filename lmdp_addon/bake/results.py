@@ -152,7 +152,9 @@ class BakeResult:
             "settings": dict(self.settings),
             "seconds": dict(self.seconds),
             "guide": dict(self.guide_info),
-            "light_paths": dict(self.light_paths) or LightPaths.custom(self.settings.get("max_bounces", 0)).as_dict(),
+            "light_paths": dict(self.light_paths) or LightPaths.custom(
+                self.settings.get("max_bounces", 0), self.settings.get("clamp_direct", 0.0),
+                self.settings.get("clamp_indirect", 0.0)).as_dict(),
             "objects": objects,
             "atlases": {a.name: {"image": a.image_name, "resolution": a.resolution, "objects": list(a.members)}
                         for a in self.atlases},

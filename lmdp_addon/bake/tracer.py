@@ -37,6 +37,11 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
   'INDIRECT'}) and / or multiplies each path by x0's diffuse colour (Cycles' 'COLOR');
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
+* ``clamp`` (:mod:`~lmdp_addon.bake.clamp`): Cycles' sample clamp of every contribution
+  (:meth:`IndirectTracer._add`), and then Cycles' Russian roulette instead (from y_2, survival
+  ``min(1, sqrt(max_c T_c))`` of Cycles' throughput T = ρ(x0) β w), so that the clamped
+  contributions are distributed as Cycles'; guided directions enter the clamp through the
+  ratio of Cycles' throughput to the path's (:func:`_to_cycles`).
 
 Direction sampling (``guide.py``): UNGUIDED (and RESIDUAL) cosine-weighted, ``p(ω) = cos θ / π`` (``w = 1``);
 GUIDED the one-sample mixture ``α g_s + (1 - α) cos θ / π`` of the optimal policy of the
@@ -66,6 +71,7 @@ from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows
 from ..transparency import Transparency
+from .clamp import clamp_light
 from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
@@ -81,6 +87,7 @@ class TraceStats:
     rays: int = 0             #: closest-hit rays
     shadow_rays: int = 0      #: NEE occlusion rays
     vertices: int = 0         #: path vertices shaded (y_1, y_2, ...)
+    clamped: int = 0          #: light contributions scaled down by the sample clamp (``clamp``)
     guided_vertices: int = 0  #: vertices that had a compatible state (GUIDED / FINAL_GATHER)
     gathered: int = 0         #: FINAL_GATHER paths ended by the solution at y_1
     gather_fallback: int = 0  #: FINAL_GATHER paths continued by path tracing (no state near y_1)
@@ -117,11 +124,15 @@ class IndirectTracer:
     glossy_bounces, total_bounces  on glossy scenes, Cycles' Glossy and Max bounces: a path keeps
                     at most ``max_bounces`` diffuse, ``glossy_bounces`` glossy and
                     ``total_bounces`` bounces in all (-1: no separate limit, ``max_bounces``)
+    clamp           :class:`~lmdp_addon.bake.clamp.SampleClamp`: Cycles' direct / indirect sample
+                    clamp on every light contribution (:meth:`_add`), with Cycles' Russian
+                    roulette (:meth:`_cycles_roulette`) after ``min_light_bounces`` (Cycles' Min
+                    Light Bounces); None or both limits 0: no clamp
     """
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
                  guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None,
-                 glossy_bounces=-1, total_bounces=-1):
+                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -141,6 +152,11 @@ class IndirectTracer:
                            else CosineDirections())
         self.rr_start = int(rr_start)
         self.content = content or BakeContent()
+        #: Cycles' sample clamp (None: off). It is a function of each contribution, so with it the
+        #: paths also end by Cycles' Russian roulette, whose survivors carry Cycles' throughputs.
+        self.clamp = clamp if clamp is not None and clamp.active else None
+        #: Cycles' roulette spares the rays reaching y_k for k <= Min Light Bounces + 1.
+        self.roulette_from = max(int(min_light_bounces), 0) + 2
         self.caster = caster or RayCaster(scene)
         self.lights = EmitterSampler(scene)
         self.lamps = scene.lamps
@@ -214,11 +230,19 @@ class IndirectTracer:
         gnrm = nrm
         if self.smooth and triangles is not None:
             nrm, gnrm = self._start_normals(pos, nrm, np.asarray(triangles, dtype=np.int64))
-        colour0 = None       # the diffuse colour at x (zero_colour, multiply_color)
-        if self.zero_colour and triangles is not None:
+        colour0 = None       # the diffuse colour at x (zero_colour, multiply_color, clamp)
+        if (self.zero_colour or self.clamp is not None) and triangles is not None:
             # Cycles' DIFFUSE INDIRECT pass is divided by the diffuse colour at x (albedo x
-            # alpha); in channels where that colour is 0 it takes the others' (below).
+            # alpha); in channels where that colour is 0 it takes the others' (below). Cycles'
+            # clamp sees the light times it (its throughput after x, ``clamp``).
             colour0 = self._start_colour(pos, np.asarray(triangles, dtype=np.int64))
+        # What the clamp multiplies each path's contributions by to see Cycles' own: ρ(x0) and,
+        # where the guide draws directions, Cycles' throughput over the path's (``_to_cycles``).
+        rho0 = None
+        if self.clamp is not None:
+            rho0 = colour0
+            if self.guide is not None:
+                rho0 = np.ones((n, 3), np.float32) if colour0 is None else colour0.astype(np.float32, copy=True)
         states = np.asarray(states, dtype=np.int64) if self.guide is not None else np.full(n, -1)
         d, w, cos_prev = self.directions.sample(nrm, states, np.asarray(u_first, np.float64),
                                                 np.asarray(u_mix), first=True)
@@ -227,7 +251,10 @@ class IndirectTracer:
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
         if self.content.direct:   # ---- direct light at x0: NEE here, MIS hits of ω0 below ----
-            L += self._next_events(pos, nrm, gnrm, lift, rng, stats)
+            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats)
+            self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
+        if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
+            _to_cycles(rho0, idx, _cosine_ratio(w))
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
@@ -248,9 +275,11 @@ class IndirectTracer:
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
             if bounce >= 2 or self.content.direct:
-                self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev)
+                self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
+                                  bounce=bounce, rho0=rho0, stats=stats)
                 if self.lamp_hits:   # lamps the rays cross before their hit (they go on through)
-                    self._lamps_found(L, idx, beta * w[:, None], origin, nrm, d, tri, dist, cos_prev, q_prev)
+                    self._lamps_found(L, idx, beta * w[:, None], origin, nrm, d, tri, dist, cos_prev, q_prev,
+                                      bounce=bounce, rho0=rho0, stats=stats)
             if bounce > self.total_limit:
                 break
             if n_glossy is not None:   # Cycles' diffuse and glossy limits (the texel's bounce is diffuse)
@@ -260,6 +289,14 @@ class IndirectTracer:
             idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
                                                                       bu, bv)
             p_min, n_glossy = _take(p_min, h), _take(n_glossy, h)
+            if self.clamp is not None and bounce >= self.roulette_from:   # Cycles' roulette before y_bounce
+                keep, p_keep = self._cycles_roulette(idx, beta, w, rho0, rng)
+                idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(keep, idx, origin, d, w, beta, tri,
+                                                                          dist, bu, bv)
+                beta = beta / p_keep[:, None]
+                p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
+                if len(idx) == 0:
+                    break
             pos, nrm, gnrm, front, beta_hit = self._vertices(d, tri, bu, bv, w, beta)
             glossy = None if self.glossy is None else np.flatnonzero(self.glossy[tri])
             if glossy is not None and len(glossy):
@@ -275,7 +312,7 @@ class IndirectTracer:
                 z_ind = self.control.indirect_at(tri, bu, bv, pos, gnrm, front, objs, dist)
             if bounce == 1 and self.gather is not None:
                 live = self._final_gather(L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs,
-                                          rng, stats)
+                                          rng, stats, rho0)
                 idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
                     live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
                 p_min, n_glossy = _take(p_min, live), _take(n_glossy, live)
@@ -293,14 +330,15 @@ class IndirectTracer:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
-            direct = self._next_events(pos, nrm, gnrm, lift, rng, stats, glossy_rows)
-            L[idx] += beta * direct
+            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows)
+            direct = _summed(samples)
+            self._add_light_samples(L, idx, beta, samples, direct, bounce, rho0, stats)
             if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
                 control_out[idx] = beta * (direct + z_ind)
                 if first_hit_only:
                     break
-            # ---- Russian roulette ----
-            if bounce >= self.rr_start:
+            # ---- Russian roulette (with the clamp: Cycles', above) ----
+            if bounce >= self.rr_start and self.clamp is None:
                 q = np.minimum(_channel_max(beta), 1.0)
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
@@ -319,9 +357,15 @@ class IndirectTracer:
             d, w, cos_prev = self.directions.sample(nrm, vstates, u[:, :2], u[:, 2], first=False)
             w = self._above_geometry(w, gnrm, d)
             q_prev = None
+            ratio = None
+            if rho0 is not None and self.guide is not None:
+                ratio = _cosine_ratio(w)
             if glossy_rows is not None:
-                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta, glossy_states)
+                d, w, beta, q_prev, lobe = self._sample_glossy(glossy_rows, u, d, w, beta, glossy_states,
+                                                               cycles_ratio=ratio)
                 n_glossy = n_glossy + lobe
+            if ratio is not None:
+                _to_cycles(rho0, idx, ratio)
             if p_min is not None:
                 p_ray = np.maximum(cos_prev, 0.0) * INV_PI
                 if q_prev is not None:
@@ -354,29 +398,65 @@ class IndirectTracer:
             colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
         return colour
 
-    def _next_events(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None):
-        """The light-sampling half of the direct light D(y) (k, 3) at the points ``pos`` (shading
-        normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``): the emitters' MIS estimate
-        (``lights``), Blender's lights (``lamps``; MIS-weighted where rays hit them) and the environment
-        map's MIS estimate (``world``), in that order of random numbers; rows of ``glossy_rows``
+    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None):
+        """The light-sampling half of the direct light D(y) at the points ``pos`` (shading
+        normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``), one (k, 3) estimate per light
+        kind: the emitters' MIS estimate (``lights``), Blender's lights (``lamps``; MIS-weighted
+        where rays hit them) and the environment map's MIS estimate (``world``), in that order of
+        random numbers (D(y) is their sum, :func:`_summed`); rows of ``glossy_rows``
         (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density."""
         geometric = gnrm if self.smooth else None
         direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric,
                                                      bsdf=glossy_rows)
         stats.shadow_rays += shadow_rays
+        samples = [direct]
         if not self.lamps.empty:
             lamp_direct, shadow_rays = self.lamps.next_event(pos, nrm, rng, self.caster, lift=lift,
                                                              geometric=geometric, transparency=self.transparency,
                                                              bsdf=glossy_rows, mis=True)
             stats.shadow_rays += shadow_rays
-            direct = direct + lamp_direct
+            samples.append(lamp_direct)
         if self.environment is not None:
             world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
                                                                geometric=geometric, transparency=self.transparency,
                                                                bsdf=glossy_rows)
             stats.shadow_rays += shadow_rays
-            direct = direct + world_direct
-        return direct
+            samples.append(world_direct)
+        return samples
+
+    # ---- Cycles' sample clamp ----------------------------------------------------------------------
+    def _add(self, L, at, light, bounce, rho0, stats):
+        """``L[at] += light``: one light contribution per row (throughput x light, after MIS),
+        through Cycles' sample clamp when it is on (``clamp.clamp_light``: the limit of
+        ``bounce``, 0 for light reaching x0 directly; the rows' ρ(x0) ``rho0[at]`` as the
+        throughput the values leave out). Every contribution of the tracer goes through here."""
+        if self.clamp is not None:
+            light, count = clamp_light(light, self.clamp.limit(bounce), None if rho0 is None else rows(rho0, at))
+            stats.clamped += count
+        L[at] += light
+
+    def _add_light_samples(self, L, at, beta, samples, direct, bounce, rho0, stats):
+        """The light samples ``samples`` (:meth:`_light_samples`, summed ``direct``) of the paths
+        ``at`` times their throughput ``beta`` (None: 1) into ``L``: with the clamp each light
+        kind's sample is a contribution of its own (Cycles clamps each light sample)."""
+        if self.clamp is None:
+            self._add(L, at, direct if beta is None else beta * direct, bounce, rho0, stats)
+            return
+        for sample in samples:
+            self._add(L, at, sample if beta is None else beta * sample, bounce, rho0, stats)
+
+    def _cycles_roulette(self, idx, beta, w, rho0, rng):
+        """Cycles' Russian roulette of the rays that reach y_k, k >= Min Light Bounces + 2
+        (``intersect_closest``, ``path_state_continuation_probability``): survival probability
+        ``p = min(1, sqrt(max_c T_c))`` of Cycles' throughput T = ρ(x0) β_{k-1} w_{k-1}, the
+        survivors' β divided by p before y_k is shaded. Returns ``(surviving rows, their p)``.
+        With the clamp the paths' throughputs must be Cycles' own: the clamp is nonlinear."""
+        T = beta * w[:, None]
+        if rho0 is not None:
+            T = T * rows(rho0, idx)
+        p = np.minimum(np.sqrt(_channel_max(np.abs(T))), 1.0).astype(np.float32)
+        keep = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < p)
+        return keep, p[keep]
 
     def _barycentrics(self, pos, t):
         """Barycentrics ``(bu, bv)`` (k,) float64 of the points ``pos`` (k, 3) in the planes of
@@ -428,37 +508,46 @@ class IndirectTracer:
         albedo = self.scene.albedo_at(tri, bu, bv) if self.textured else rows(self.albedo, tri)
         return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
 
-    def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None):
-        """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k >= 2): the world
-        through the rays that escape, the emitters through the rays ``h`` that hit geometry
-        (the sampled-ray half of the MIS estimate); ``bw = β w`` of the rays; ``q_prev``: the
-        BSDF density of rays sampled at glossy vertices (NaN elsewhere), or None."""
+    def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None, bounce=2, rho0=None,
+                     stats=None):
+        """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k = ``bounce`` >= 2,
+        or 1 with the direct light of ``content``): the world through the rays that escape, the
+        emitters through the rays ``h`` that hit geometry (the sampled-ray half of the MIS
+        estimate); ``bw = β w`` of the rays; ``q_prev``: the BSDF density of rays sampled at glossy
+        vertices (NaN elsewhere), or None. Contributions of bounce k - 1 (:meth:`_add`)."""
+        stats = stats if stats is not None else TraceStats()
         if self.environment is not None and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
-            L[idx[miss]] += rows(bw, miss) * world_light.escape_weight(
+            self._add(L, idx[miss], rows(bw, miss) * world_light.escape_weight(
                 self.environment, rows(d, miss), np.take(cos_prev, miss),
-                pdf_from=None if q_prev is None else np.take(q_prev, miss))
+                pdf_from=None if q_prev is None else np.take(q_prev, miss)), bounce - 1, rho0, stats)
         elif self.world_lit and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
-            L[idx[miss]] += rows(bw, miss) * self.world
+            self._add(L, idx[miss], rows(bw, miss) * self.world, bounce - 1, rho0, stats)
         if len(h):
             lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals,
                                                    pdf_from=q_prev)
-            L[idx[lit]] += rows(bw, lit) * value
+            self._add(L, idx[lit], rows(bw, lit) * value, bounce - 1, rho0, stats)
 
-    def _lamps_found(self, L, idx, bw, origin, nrm, d, tri, dist, cos_prev, q_prev=None):
+    def _lamps_found(self, L, idx, bw, origin, nrm, d, tri, dist, cos_prev, q_prev=None, bounce=2, rho0=None,
+                     stats=None):
         """Adds to ``L`` the sampled-ray half of the lamps' MIS estimate (``lamp_hits``): the
         lamps that the rays from the vertices at ``origin`` (shading normals ``nrm``) cross
-        before their closest hit ``dist`` (suns: the rays that escape); ``bw = β w``."""
+        before their closest hit ``dist`` (suns: the rays that escape); ``bw = β w``.
+        Contributions of bounce k - 1 (:meth:`_add`), as :meth:`_light_found`."""
+        stats = stats if stats is not None else TraceStats()
         lit, value = lamp_hits.emission_hits(self.lamps, origin, nrm, d, np.where(tri >= 0, dist, np.inf),
                                              tri == -1, cos_prev, pdf_from=q_prev)
-        L[idx[lit]] += rows(bw, lit) * value
+        self._add(L, idx[lit], rows(bw, lit) * value, bounce - 1, rho0, stats)
 
-    def _final_gather(self, L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats):
+    def _final_gather(self, L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats,
+                      rho0=None):
         """FINAL_GATHER at y_1: the radiance leaving it, ρ (ẑ_ind + D_e), with the direct part by
         light sampling at y_1 itself (``gather.build_gather``), ends the paths the gather serves;
         returns the rows of the others (no state near, back faces, hits too close), which go on.
-        ``nrm`` / ``gnrm``: the shading and geometric normals of the hit side."""
+        ``nrm`` / ``gnrm``: the shading and geometric normals of the hit side. With the clamp the
+        light samples at y_1 are clamped as Cycles' (bounce 1); ẑ_ind, the solution's expected
+        light beyond y_1, is not a sample and is added as it is (``checks`` warns)."""
         value = self.gather.value_at(tri, bu, bv, pos, gnrm, front, objs)
         done = ~np.isnan(value[:, 0]) & ~self.gather.too_close(dist, objs)
         if self.glossy is not None:   # ẑ is Lambertian radiance: glossy hits go on as paths
@@ -468,12 +557,14 @@ class IndirectTracer:
                                                        lift=np.take(lift, g),
                                                        geometric=rows(gnrm, g) if self.smooth else None)
         stats.shadow_rays += shadow_rays
+        samples = [direct]
         if self.environment is not None:   # the world's direct light at y_1 (ẑ then leaves it out)
             world_direct, shadow_rays = world_light.next_event(
                 self.environment, rows(pos, g), rows(nrm, g), rng, self.caster, np.take(lift, g),
                 geometric=rows(gnrm, g) if self.smooth else None, mis=False, transparency=self.transparency)
             stats.shadow_rays += shadow_rays
             direct = direct + world_direct
+            samples.append(world_direct)
         if not self.lamps.empty:
             lamp_direct, shadow_rays = self.lamps.direct_light(rows(pos, g), rows(nrm, g), rng, self.caster,
                                                                lift=np.take(lift, g),
@@ -481,16 +572,23 @@ class IndirectTracer:
                                                                transparency=self.transparency)
             stats.shadow_rays += shadow_rays
             direct = direct + lamp_direct
-        L[idx[g]] += rows(beta, g) * (value[g].astype(np.float32) + direct)
+            samples.append(lamp_direct)
+        if self.clamp is None:
+            L[idx[g]] += rows(beta, g) * (value[g].astype(np.float32) + direct)
+        else:
+            L[idx[g]] += rows(beta, g) * value[g].astype(np.float32)
+            self._add_light_samples(L, idx[g], rows(beta, g), samples, direct, 1, rho0, stats)
         stats.gathered += int(done.sum())
         stats.gather_fallback += int((~done).sum())
         return np.flatnonzero(~done)
 
 
-    def _guided_glossy(self, vertex, u, states):
+    def _guided_glossy(self, vertex, u, states, cycles_ratio=None):
         """GUIDED at glossy vertices (:meth:`_sample_glossy`): ``(wo, f cos / p, q, lobe kind)``
         with p = α g_s + (1 - α) p_bsdf at rows with a state (exact; a mirror lobe's sample
-        keeps its delta weight / (1 - α)) and the BSDF alone elsewhere; q is the BSDF density."""
+        keeps its delta weight / (1 - α)) and the BSDF alone elsewhere; q is the BSDF density.
+        ``cycles_ratio`` (k,): receives p / p_bsdf (the mirror's 1 - α), Cycles' weight over
+        this one, at the rows with a state (the clamp's view, :func:`_to_cycles`)."""
         alpha = self.guide_fraction
         has = states >= 0
         guided = has & (u[:, 2] < alpha)
@@ -511,9 +609,13 @@ class IndirectTracer:
             ok = above & (p_mix > 0) & (np.isin(mix, gi) | (pdf[mix] > 0))
             weight[mix] = np.where(ok[:, None], f / np.where(p_mix > 0, p_mix, 1.0)[:, None], 0.0)
             pdf[mix] = np.where(ok, np.maximum(p_bsdf, 1e-30), 0.0)
+            if cycles_ratio is not None:
+                cycles_ratio[mix] = np.where(ok, p_mix / np.maximum(p_bsdf, 1e-30), 1.0)
         mirror = np.flatnonzero(has & (kind == 2))
         if len(mirror):
             weight[mirror] /= max(1.0 - alpha, 1e-12)
+            if cycles_ratio is not None:
+                cycles_ratio[mirror] = max(1.0 - alpha, 1e-12)
         return wo, weight, pdf, kind
 
     # ---- glossy vertices ----------------------------------------------------------------------------
@@ -539,19 +641,23 @@ class IndirectTracer:
                             rows(nrm, g), rows(wi, g), geometric=rows(gnrm, g), blur=blur)
         return GlossyRows(len(tri), g, vertex)
 
-    def _sample_glossy(self, glossy_rows, u, d, w, beta, states=None):
+    def _sample_glossy(self, glossy_rows, u, d, w, beta, states=None, cycles_ratio=None):
         """Directions of the glossy rows drawn from their BSDF (``u``: their uniforms), or in
         GUIDED mode at rows with a state (``states`` of the wavefront, -1: none) from the
         one-sample mixture ``α g_s + (1 - α) p_bsdf`` (u[:, 2] < α picks the guide, else it is
         rescaled to pick the lobe): the weight ``f cos / p`` joins β (w = 1, 0 when absorbed);
         returns ``(d, w, beta, q, lobe)`` with q (k,) float32 the BSDF density of those rays (NaN
         on the other rows; the MIS partition of unity, as next-event estimation uses it) and
-        lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce)."""
+        lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce). ``cycles_ratio``
+        (k,) float32: its glossy rows are set to Cycles' weight over theirs (1 without a guide)."""
         g = np.flatnonzero(glossy_rows.mask)
+        ratio = None if cycles_ratio is None else np.ones(len(g), np.float64)
         if states is not None and np.any(np.take(states, g) >= 0):
-            wo, weight, pdf, kind = self._guided_glossy(glossy_rows.bsdf, rows(u, g), np.take(states, g))
+            wo, weight, pdf, kind = self._guided_glossy(glossy_rows.bsdf, rows(u, g), np.take(states, g), ratio)
         else:
             wo, weight, pdf, kind = glossy_rows.bsdf.sample(rows(u, g), return_lobe=True)
+        if cycles_ratio is not None:
+            cycles_ratio[g] = ratio
         microfacet = kind > 0
         d = d.copy()
         d[g] = wo
@@ -564,6 +670,30 @@ class IndirectTracer:
         lobe = np.zeros(len(d), np.int16)
         lobe[g] = microfacet
         return d, w, beta, q, lobe
+
+
+def _cosine_ratio(w):
+    """Cycles' weight over the path's for directions drawn with weights ``w (k,)``: Cycles draws
+    cosine directions (weight 1) where the guide's have w = cos θ / (π p), so 1 / w = p / (cos θ
+    / π) (1 where w = 0: those paths end)."""
+    return np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 1.0).astype(np.float32)
+
+
+def _to_cycles(weights, idx, ratio):
+    """The clamp's weights of the paths ``idx`` (rows of ``weights (n, 3)``, in place) times
+    ``ratio (k,)``, Cycles' throughput over theirs for the directions just drawn
+    (:func:`_cosine_ratio`; at glossy vertices p / p_bsdf). A contribution c of the path is
+    Cycles' c' = c x Π ratio, and the estimate c · s(c'), s Cycles' clamp factor, has the mean of
+    Cycles' clamped value E_Cycles[s(c') c'] (importance sampling: c / c' = p_Cycles / p)."""
+    weights[idx] *= ratio[:, None]
+
+
+def _summed(samples):
+    """The sum of the light samples of :meth:`IndirectTracer._light_samples`, in their order."""
+    total = samples[0]
+    for sample in samples[1:]:
+        total = total + sample
+    return total
 
 
 def _take(a, index):

@@ -303,9 +303,8 @@ def _light_paths_line(scene):
     paths = light_paths_from_scene(scene)
     if paths.source != "SCENE":
         return "Cycles is not available: Max Bounces is used"
-    clamp = f"; clamp {paths.clamp_indirect:g} not applied" if paths.clamp_ignored else ""
     return (f"Cycles: {paths.path_length} bounces (Max {paths.max_bounces}, Diffuse "
-            f"{paths.diffuse_bounces}){clamp}")
+            f"{paths.diffuse_bounces}), {paths.clamp_summary()}")
 
 
 def _lightmap_layout(layout, props):
@@ -340,9 +339,11 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row.active = props.bake_mode in ('GUIDED', 'FINAL_GATHER')   # both draw their first bounce from u*
         row.prop(props, "guide_fraction")
         layout.prop(props, "light_paths")
-        row = layout.row()
-        row.active = props.light_paths == 'CUSTOM'   # SCENE: the scene's Cycles Light Paths decide
-        row.prop(props, "max_bounces")
+        column = layout.column(align=True)
+        column.active = props.light_paths == 'CUSTOM'   # SCENE: the scene's Cycles Light Paths decide
+        column.prop(props, "max_bounces")
+        column.prop(props, "clamp_direct")
+        column.prop(props, "clamp_indirect")
         if props.light_paths == 'SCENE':
             _status(layout, _light_paths_line(context.scene), icon='LIGHT')
         layout.prop(props, "bake_content")

@@ -5,7 +5,9 @@ bounce count reaches Diffuse (``path_state_next``); the engine makes only diffus
 path length is N = min(max_bounces, diffuse_bounces). Measured against Cycles' bakes of the
 Cornell floor (16², 1024 samples, clamp 0): Cycles (12, 4) vs N = 3 / 4 / 5: −9.9 / +0.1 / +5.1 %;
 (12, 2) vs N = 1 / 2 / 3: −49 / −0.2 / +21 %; (3, 8) vs N = 2 / 3 / 4: −18 / −0.2 / +11 %
-(σ ≈ 0.4 %). ``scene.lmdp.light_paths = 'CUSTOM'`` uses ``scene.lmdp.max_bounces`` instead.
+(σ ≈ 0.4 %). The scene's Cycles clamps (Clamping > Direct / Indirect Light) are applied as Cycles
+applies them (``test_clamp_vs_cycles``). ``scene.lmdp.light_paths = 'CUSTOM'`` uses
+``scene.lmdp.max_bounces``, ``clamp_direct`` and ``clamp_indirect`` instead.
 """
 import hashlib
 import json
@@ -47,8 +49,8 @@ def test_light_paths_path_length_is_the_smaller_limit(lmdp_ext):
     assert LightPaths.from_cycles(3, 8).path_length == 3
     assert LightPaths.from_cycles(12, 0).path_length == 0
     assert LightPaths.custom(7).path_length == 7
-    assert LightPaths.from_cycles(12, 4, clamp_indirect=10).clamp_ignored
-    assert not LightPaths.from_cycles(12, 4, clamp_indirect=0).clamp_ignored
+    assert LightPaths.from_cycles(12, 4, clamp_indirect=10).clamped
+    assert not LightPaths.from_cycles(12, 4, clamp_indirect=0).clamped
 
 
 def test_a_new_scene_follows_cycles_default_light_paths(fresh_scene, lmdp_ext):
@@ -58,6 +60,18 @@ def test_a_new_scene_follows_cycles_default_light_paths(fresh_scene, lmdp_ext):
     cycles = fresh_scene.cycles
     assert (paths.max_bounces, paths.diffuse_bounces) == (cycles.max_bounces, cycles.diffuse_bounces) == (12, 4)
     assert settings.max_bounces == paths.path_length == 4
+    # Cycles' default clamps (direct off, indirect 10) reach the engine's settings
+    assert (paths.clamp_direct, paths.clamp_indirect) == (cycles.sample_clamp_direct, cycles.sample_clamp_indirect) \
+        == (0.0, 10.0)
+    assert (settings.clamp_direct, settings.clamp_indirect) == (0.0, 10.0)
+    assert paths.min_light_bounces == settings.min_light_bounces == cycles.min_light_bounces == 0
+    cycles.min_light_bounces = 2
+    assert props.bake_settings_from_scene(fresh_scene)[0].min_light_bounces == 2
+    panel = lmdp_ext.sub("operators.ui.panel")   # the Bake section's status line under Light Paths
+    assert panel._light_paths_line(fresh_scene) == ("Cycles: 4 bounces (Max 12, Diffuse 4), indirect clamped at 10 "
+                                                   "(biased, like Cycles)")
+    cycles.sample_clamp_indirect = 0.0
+    assert panel._light_paths_line(fresh_scene).endswith("Diffuse 4), no clamp")
     assert props.settings_from_scene(fresh_scene).max_bounces == 8   # scene.lmdp itself is unchanged
 
 
@@ -77,19 +91,31 @@ def test_default_bake_reads_the_scene_light_paths(cornell, lmdp_ext, tmp_path, m
 
 def test_custom_overrides_the_scene(cornell, lmdp_ext, tmp_path):
     cornell.cycles.max_bounces, cornell.cycles.diffuse_bounces = 12, 2
+    cornell.cycles.sample_clamp_indirect, cornell.cycles.sample_clamp_direct = 10.0, 4.0
     result, stats = tiny_bake(lmdp_ext, tmp_path, light_paths='CUSTOM', max_bounces=5)
     assert result.settings["max_bounces"] == 5
     assert stats["light_paths"]["source"] == "CUSTOM" and stats["light_paths"]["path_length"] == 5
-    assert not any("clamp" in w for w in stats["warnings"])  # CUSTOM does not follow the clamp either
+    # CUSTOM does not follow the scene's clamps: its own, off by default
+    assert (result.settings["clamp_direct"], result.settings["clamp_indirect"]) == (0.0, 0.0)
+    assert stats["light_paths"]["clamp_applied"] is False
+    assert not any("clamp" in w for w in stats["warnings"])
+    result, stats = tiny_bake(lmdp_ext, tmp_path, light_paths='CUSTOM', max_bounces=5, clamp_indirect=2.5)
+    assert (result.settings["clamp_direct"], result.settings["clamp_indirect"]) == (0.0, 2.5)
+    assert (stats["light_paths"]["clamp_indirect"], stats["light_paths"]["clamp_applied"]) == (2.5, True)
 
 
-def test_scene_clamp_is_not_applied_and_says_so_once(cornell, lmdp_ext, tmp_path):
+def test_scene_clamps_are_applied_and_reported(cornell, lmdp_ext, tmp_path):
     cornell.cycles.sample_clamp_indirect = 10.0   # Cycles' default
-    result, stats = tiny_bake(lmdp_ext, tmp_path)
-    clamp = [w for w in stats["warnings"] if "indirect clamp" in w]
-    assert len(clamp) == 1 and "not applied" in clamp[0] and "10" in clamp[0]
-    assert stats["light_paths"]["clamp_indirect"] == 10.0
-    assert stats["light_paths"]["clamp_ignored"] is True and stats["light_paths"]["clamp_applied"] is False
+    cornell.cycles.sample_clamp_direct = 0.25
+    result, stats = tiny_bake(lmdp_ext, tmp_path, bake_content='DIRECT_INDIRECT')
+    assert (result.settings["clamp_direct"], result.settings["clamp_indirect"]) == (0.25, 10.0)
+    paths = stats["light_paths"]
+    assert (paths["clamp_direct"], paths["clamp_indirect"], paths["clamp_applied"]) == (0.25, 10.0, True)
+    assert stats["settings"]["clamp_indirect"] == 10.0
+    assert not any("not applied" in w for w in stats["warnings"])   # UNGUIDED clamps as Cycles does
+    assert stats["objects"]["Floor"]["trace"]["clamped"] > 0       # the demo light's direct samples
+    summary = lmdp_ext.sub("operators.properties").light_paths_from_scene(cornell).summary()
+    assert summary.endswith("direct clamped at 0.25 and indirect clamped at 10 (biased, like Cycles)")
 
 
 def test_no_diffuse_bounce_is_refused_with_the_reason(cornell, lmdp_ext):
@@ -130,8 +156,11 @@ def test_headless_default_follows_the_scene_and_set_custom_works(repo_root, tmp_
 
     default = light_paths(tmp_path / "default")
     assert default["source"] == "SCENE" and default["path_length"] == 3
-    custom = light_paths(tmp_path / "custom", "--set", "light_paths=CUSTOM", "--set", "max_bounces=6")
+    assert (default["clamp_direct"], default["clamp_indirect"], default["clamp_applied"]) == (0.0, 10.0, True)
+    custom = light_paths(tmp_path / "custom", "--set", "light_paths=CUSTOM", "--set", "max_bounces=6",
+                         "--set", "clamp_indirect=2.5")
     assert custom["source"] == "CUSTOM" and custom["path_length"] == 6
+    assert (custom["clamp_direct"], custom["clamp_indirect"], custom["clamp_applied"]) == (0.0, 2.5, True)
 
 
 # -- slow: the default bake against Cycles' bake with Cycles' default light paths -------------------

@@ -73,6 +73,15 @@ def test_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved, farm, ma
     assert_same_bake(local, remote)
 
 
+def test_a_clamped_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved, farm, many_units):
+    """The sample clamp and its roulette travel with the settings (bake/clamp.py)."""
+    settings = small(bake_mode="GUIDED", bake_content="DIRECT_INDIRECT", clamp_direct=1.0, clamp_indirect=0.5,
+                     min_light_bounces=1)
+    local = driver.bake(cornell, NAMES, settings, lmdp=solved)
+    assert sum(o.stats.clamped for o in local.objects) > 0
+    assert_same_bake(local, farm_api.bake(cornell, NAMES, settings, lmdp=solved, farm=farm))
+
+
 def test_farm_build_is_byte_identical_to_the_local_build(cornell, farm, monkeypatch):
     monkeypatch.setattr(dynamics_module, "RAYS_PER_BATCH", 1 << 12)   # several batches (client side)
     settings = small()
