@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .sampling import (GOLDEN, dot, dot3, rows, spherical_triangle_sample, spherical_triangle_solid_angle,
-                       table_index)
+from .sampling import (GOLDEN, dot, dot3, rows, set_rows, spherical_triangle_sample,
+                       spherical_triangle_solid_angle, table_index)
 from .transparency import Transparency, reaches
 
 INV_PI = 1.0 / np.pi
@@ -234,7 +234,7 @@ class EmitterSampler:
         weight = q / (p_light + q) if mis else q / p_light
         if passed is not None and passed.ndim == 1:
             weight = weight * passed
-        out[vis] = rows(self.radiance32, ev) * weight[:, None]
+        set_rows(out, vis, rows(self.radiance32, ev) * weight[:, None])
         if bsdf is not None:
             g = np.flatnonzero(np.take(bsdf.mask, vis))
             if len(g):

@@ -8,7 +8,7 @@
   of a triangle, Arvo 1995) and :func:`spherical_triangle_solid_angle`;
 * frames: :func:`local_to_world` (Duff et al.'s branchless frame of a normal),
   :func:`rotate_out` / :func:`rotate_in` (given frames, rows t, b, n);
-* row helpers of the wavefront loops: :func:`rows`, :func:`dot`, and the per-component
+* row helpers of the wavefront loops: :func:`rows`, :func:`set_rows`, :func:`dot`, and the per-component
   :func:`unit3`, :func:`cross3`, :func:`dot3`.
 
 The strata of the states' hemispheres are ``model/hemisphere.py``'s (float64). Contiguous (k,)
@@ -211,6 +211,15 @@ def rows(a, index):
     """``a[index]`` along the first axis (``np.take``: several times faster than fancy indexing
     for the small row tables and long index arrays of the hot loop)."""
     return np.take(a, index, axis=0)
+
+
+def set_rows(a, index, values):
+    """``a[index] = values`` for the rows ``index`` of a C-contiguous 2-D array ``a``: the rows
+    written as single items of their byte width (numpy's fancy assignment of (k, 3) rows is
+    several times slower); ``values`` is cast to ``a``'s dtype first, as the assignment would."""
+    item = np.dtype((np.void, a.dtype.itemsize * a.shape[1]))
+    values = np.ascontiguousarray(values, dtype=a.dtype)
+    a.view(item).reshape(-1)[index] = values.view(item).reshape(-1)
 
 
 def dot(x, y):

@@ -62,7 +62,7 @@ from .. import world as world_light
 from ..bsdf import GlossyRows, VertexBSDF
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
-from ..sampling import dot, rows
+from ..sampling import dot, rows, set_rows
 from ..transparency import Transparency
 from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
@@ -580,10 +580,9 @@ def _add_rows(L, idx, values):
     """``L[idx] += values`` for the distinct rows ``idx`` of the C-contiguous (n, 3) float32
     ``L``: the same sums, with the rows gathered by ``np.take`` and written back as 12-byte
     items (numpy's fancy indexing of (n, 3) rows is several times slower)."""
-    rows_of = np.dtype((np.void, L.dtype.itemsize * 3))
     total = np.take(L, idx, axis=0)
     total += values
-    L.view(rows_of).reshape(-1)[idx] = total.view(rows_of).reshape(-1)
+    set_rows(L, idx, total)
 
 
 def _select_rows(index, *arrays):

@@ -4,7 +4,7 @@ the bake's time goes"): a bake's result for a seed does not depend on them.
 * ``sampling.table_index`` is numpy's ``searchsorted(side='right')`` clipped to the table,
   counted for small tables (ties, zero-probability entries, u = 0 included);
 * ``sampling.stratified_first_uniforms`` is ``np.mod(·, 1)`` of the shifted points, bit for bit;
-* the tracer's ``_add_rows`` is ``L[idx] += v``, and ``_select_rows`` gathers an array passed
+* ``sampling.set_rows`` is ``a[idx] = v`` and the tracer's ``_add_rows`` is ``L[idx] += v``, and ``_select_rows`` gathers an array passed
   twice once and hands back the arrays themselves when every path lives;
 * the tracer gives the same values for float64 start points and their float32 rounding (the
   driver now writes the work unit's start points straight into float32);
@@ -16,7 +16,7 @@ import pytest
 
 from lmdp_addon import demo_geometry as scenes
 from lmdp_addon.bake.tracer import IndirectTracer, _add_rows, _select_rows
-from lmdp_addon.sampling import (COUNTED_TABLE, GOLDEN, radical_inverse2, spherical_triangle_sample,
+from lmdp_addon.sampling import (COUNTED_TABLE, GOLDEN, radical_inverse2, set_rows, spherical_triangle_sample,
                                  stratified_first_uniforms, table_index)
 
 
@@ -59,6 +59,19 @@ def test_add_rows_is_fancy_index_addition():
         got = L.copy()
         _add_rows(got, idx, values)
         np.testing.assert_array_equal(got, expected)
+
+
+def test_set_rows_is_fancy_index_assignment():
+    rng = np.random.default_rng(5)
+    for dtype, width in ((np.float32, 3), (np.float64, 3), (np.float32, 2)):
+        a = rng.random((500, width)).astype(dtype)
+        idx = np.sort(rng.choice(500, 200, replace=False))
+        for values in (rng.random((200, width)).astype(np.float32), rng.random((200, width))):
+            expected = a.copy()
+            expected[idx] = values
+            got = a.copy()
+            set_rows(got, idx, values)
+            np.testing.assert_array_equal(got, expected)
 
 
 def test_select_rows_gathers_shared_arrays_once_and_keeps_full_selections():
