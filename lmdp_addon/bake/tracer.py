@@ -264,7 +264,7 @@ class IndirectTracer:
             wi = -d if self.glossy is not None else None   # the view direction of glossy vertices
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
-            objs = self.objects[tri]
+            objs = np.take(self.objects, tri)
             z_ind = None
             if bounce == 1 and control_out is not None:    # RESIDUAL: ẑ_ind(y_1) of g
                 z_ind = self.control.indirect_at(tri, bu, bv, pos, gnrm, front, objs, dist)
