@@ -236,15 +236,19 @@ def lookup(table, *coords):
     axis is the first coordinate (x = roughness), the one before it the second (y = μ), ..."""
     coords = [np.asarray(c, dtype=np.float64) for c in coords]
     shape = table.shape[::-1]
-    parts = [_lerp_index(c, n) for c, n in zip(coords, shape)]
+    strides = np.cumprod((1,) + shape[:-1])         # of the axes in coordinate order (C layout)
+    flat_table = np.ascontiguousarray(table).reshape(-1)
+    # per axis: the two flat index offsets of the cell and the two weights (t, 1 - t)
+    parts = [(i0 * stride, i1 * stride, t, 1.0 - t)
+             for (i0, i1, t), stride in zip((_lerp_index(c, n) for c, n in zip(coords, shape)), strides)]
     out = 0.0
-    for corner in range(2 ** len(coords)):
-        idx, w = [], 1.0
-        for axis, (i0, i1, t) in enumerate(parts):
+    for corner in range(2 ** len(coords)):     # the 2^d corners of the cell (a loop over corners)
+        flat, w = 0, 1.0
+        for axis, (i0, i1, t, s) in enumerate(parts):
             hi = (corner >> axis) & 1
-            idx.append(i1 if hi else i0)
-            w = w * (t if hi else 1.0 - t)
-        out = out + w * table[tuple(idx[::-1])]
+            flat = flat + (i1 if hi else i0)
+            w = w * (t if hi else s)
+        out = out + w * np.take(flat_table, flat)
     return out
 
 

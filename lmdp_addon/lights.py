@@ -25,7 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .sampling import GOLDEN, dot, dot3, rows, spherical_triangle_sample, spherical_triangle_solid_angle
+from .sampling import (GOLDEN, dot, dot3, rows, set_rows, spherical_triangle_sample,
+                       spherical_triangle_solid_angle, table_index)
 from .transparency import Transparency, reaches
 
 INV_PI = 1.0 / np.pi
@@ -194,7 +195,7 @@ class EmitterSampler:
         if self.n_triangles == 1:
             e = np.zeros(k, dtype=np.int64)
         else:
-            e = np.minimum(np.searchsorted(self.power_cdf32, r[:, 0], side="right"), self.n_triangles - 1)
+            e = table_index(self.power_cdf32, r[:, 0])
         # Direction and distance from the offset origin itself: from the surface point, a shadow
         # ray at a grazing angle would meet the emitter's plane before ``dist`` (close emitters).
         origin = points + eps * (normals if geometric is None else geometric)
@@ -233,7 +234,7 @@ class EmitterSampler:
         weight = q / (p_light + q) if mis else q / p_light
         if passed is not None and passed.ndim == 1:
             weight = weight * passed
-        out[vis] = rows(self.radiance32, ev) * weight[:, None]
+        set_rows(out, vis, rows(self.radiance32, ev) * weight[:, None])
         if bsdf is not None:
             g = np.flatnonzero(np.take(bsdf.mask, vis))
             if len(g):

@@ -134,9 +134,10 @@ def triangle_offsets(scene, valid):
     ``RELATIVE_OFFSET`` x the largest |coordinate| of the triangle's corners and of the
     triangles sharing a vertex with it, at least ``MIN_OFFSET`` (module docstring)."""
     tris = scene.triangles[valid]
-    magnitude = np.abs(scene.vertices[tris]).max(axis=(1, 2))            # (k,) metres
+    magnitude = np.abs(scene.vertices).max(axis=1)[tris].max(axis=1)     # (k,) metres
     at_vertex = np.zeros(len(scene.vertices))
-    np.maximum.at(at_vertex, tris.ravel(), np.repeat(magnitude, 3))
+    for corner in range(3):                 # a loop over the three corners, not over triangles
+        np.maximum.at(at_vertex, tris[:, corner], magnitude)
     offset = np.zeros(scene.n_triangles)
     offset[valid] = np.maximum(RELATIVE_OFFSET * at_vertex[tris].max(axis=1), MIN_OFFSET)
     return offset

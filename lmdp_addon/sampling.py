@@ -2,12 +2,13 @@
 
 * sequences: :data:`GOLDEN` (Kronecker), :func:`radical_inverse2` (van der Corput), and the
   texel's first-direction uniforms :func:`stratified_first_uniforms` (shifted Hammersley);
+  :func:`table_index`, the entry of a small CDF table a uniform selects;
 * warps: :func:`concentric32` (Shirley–Chiu square to disk), :func:`cosine_directions`
   (cosine-weighted hemisphere), :func:`spherical_triangle_sample` (uniform in the solid angle
   of a triangle, Arvo 1995) and :func:`spherical_triangle_solid_angle`;
 * frames: :func:`local_to_world` (Duff et al.'s branchless frame of a normal),
   :func:`rotate_out` / :func:`rotate_in` (given frames, rows t, b, n);
-* row helpers of the wavefront loops: :func:`rows`, :func:`dot`, and the per-component
+* row helpers of the wavefront loops: :func:`rows`, :func:`set_rows`, :func:`dot`, and the per-component
   :func:`unit3`, :func:`cross3`, :func:`dot3`.
 
 The strata of the states' hemispheres are ``model/hemisphere.py``'s (float64). Contiguous (k,)
@@ -44,9 +45,30 @@ def stratified_first_uniforms(n_texels, n, rng):
     j = np.arange(n)
     base = np.stack([(j + 0.5) / n, radical_inverse2(j)], axis=1)
     shift = rng.random((n_texels, 3))
-    u = np.mod(base[None, :, :] + shift[:, None, :2], 1.0)
-    u_mix = np.mod(j[None, :] * GOLDEN + shift[:, 2:3], 1.0)
+    # frac of non-negative sums, exactly as np.mod(·, 1) (both subtractions are exact), in place
+    u = base[None, :, :] + shift[:, None, :2]
+    np.subtract(u, 1.0, out=u, where=u >= 1.0)
+    u_mix = j[None, :] * GOLDEN + shift[:, 2:3]
+    u_mix -= np.floor(u_mix)
     return u, u_mix
+
+
+#: Largest table :func:`table_index` searches by counting instead of bisecting.
+COUNTED_TABLE = 16
+
+
+def table_index(cdf, u):
+    """``min(searchsorted(cdf, u, side='right'), n - 1)`` (k,) int64: the entry of the
+    non-decreasing table ``cdf (n,)`` that each uniform ``u (k,)`` selects. Tables of at most
+    :data:`COUNTED_TABLE` entries count the entries ``<= u`` instead (the same integers,
+    several times faster than numpy's binary search on the few emitter triangles of a room)."""
+    n = len(cdf)
+    if n > COUNTED_TABLE:
+        return np.minimum(np.searchsorted(cdf, u, side="right"), n - 1)
+    index = np.zeros(len(u), np.int64)
+    for c in cdf[:-1]:       # a loop over the table's entries, not over the samples
+        index += u >= c
+    return index
 
 
 # ---- warps of the unit square --------------------------------------------------------------------
@@ -86,12 +108,20 @@ def cosine_directions(normals, u, stratified=True):
 
 
 def _corner_units(corners):
-    return tuple(unit3(corners[:, i, 0], corners[:, i, 1], corners[:, i, 2]) for i in range(3))
+    """The unit vectors towards the three corners of ``corners (k, 3, 3)``, each as three
+    contiguous (k,) components (one transposing copy: numpy is faster on them than on the
+    strided columns)."""
+    c = np.ascontiguousarray(np.asarray(corners).transpose(1, 2, 0))    # (corner, axis, k)
+    return tuple(unit3(c[i, 0], c[i, 1], c[i, 2]) for i in range(3))
 
 
-def _solid_angle_of_units(A, B, C):
-    """Van Oosterom & Strackee (1983): tan(Ω/2) = |A·(B x C)| / (1 + A·B + B·C + C·A)."""
-    return 2.0 * np.arctan2(np.abs(dot3(A, cross3(B, C))), 1.0 + dot3(A, B) + dot3(B, C) + dot3(C, A))
+def _solid_angle_of_units(A, B, C, ab=None, bc=None, ca=None):
+    """Van Oosterom & Strackee (1983): tan(Ω/2) = |A·(B x C)| / (1 + A·B + B·C + C·A) (the dot
+    products ``ab``, ``bc``, ``ca`` if already known)."""
+    ab = dot3(A, B) if ab is None else ab
+    bc = dot3(B, C) if bc is None else bc
+    ca = dot3(C, A) if ca is None else ca
+    return 2.0 * np.arctan2(np.abs(dot3(A, cross3(B, C))), 1.0 + ab + bc + ca)
 
 
 def spherical_triangle_solid_angle(corners):
@@ -113,11 +143,11 @@ def spherical_triangle_sample(corners, u1, u2):
     alpha = np.arccos(cos_a)
     # Its area (solid angle) is the spherical excess α + β + γ - π; Van Oosterom's formula gives
     # the same number without the other two angles, and is the one the MIS weights use.
-    omega = _solid_angle_of_units(A, B, C)
+    ab, ca = dot3(A, B), dot3(C, A)
+    omega = _solid_angle_of_units(A, B, C, ab=ab, ca=ca)
     a_hat = u1 * omega                                # the sub-triangle's area
     s, t = np.sin(a_hat - alpha), np.cos(a_hat - alpha)
     u = t - cos_a
-    ab, ca = dot3(A, B), dot3(C, A)
     v = s + sin_a * ab
     den = (v * s + u * t) * sin_a
     q = np.clip(((v * t - u * s) * cos_a - v) / np.where(den != 0, den, 1e-300), -1.0, 1.0)
@@ -128,9 +158,15 @@ def spherical_triangle_sample(corners, u1, u2):
     z = 1.0 - u2 * (1.0 - cb)                                   # uniform along the arc B..c_hat
     perp = unit3(*(c_hat[i] - cb * B[i] for i in range(3)))
     sz = np.sqrt(np.maximum(1.0 - z * z, 0.0))
-    d = np.stack([z * B[i] + sz * perp[i] for i in range(3)], axis=1)
-    ok = (omega > 1e-12) & np.isfinite(d).all(axis=1)
-    return np.where(ok[:, None], d, np.stack(B, axis=1)), np.where(ok, omega, 0.0)
+    d = np.empty((len(z), 3))
+    ok = omega > 1e-12
+    for i in range(3):
+        d[:, i] = z * B[i] + sz * perp[i]
+        ok &= np.isfinite(d[:, i])
+    bad = np.flatnonzero(~ok)
+    for i in range(3):       # degenerate triangles: towards the corner B
+        d[bad, i] = B[i][bad]
+    return d, np.where(ok, omega, 0.0)
 
 
 # ---- frames ----------------------------------------------------------------------------------------
@@ -175,6 +211,15 @@ def rows(a, index):
     """``a[index]`` along the first axis (``np.take``: several times faster than fancy indexing
     for the small row tables and long index arrays of the hot loop)."""
     return np.take(a, index, axis=0)
+
+
+def set_rows(a, index, values):
+    """``a[index] = values`` for the rows ``index`` of a C-contiguous 2-D array ``a``: the rows
+    written as single items of their byte width (numpy's fancy assignment of (k, 3) rows is
+    several times slower); ``values`` is cast to ``a``'s dtype first, as the assignment would."""
+    item = np.dtype((np.void, a.dtype.itemsize * a.shape[1]))
+    values = np.ascontiguousarray(values, dtype=a.dtype)
+    a.view(item).reshape(-1)[index] = values.view(item).reshape(-1)
 
 
 def dot(x, y):

@@ -215,13 +215,20 @@ def trace_unit(tracer, job, unit_id):
     rng = np.random.default_rng([job.seed, job.object_number, b0, unit_id])
     sub = job.texels.subset(slice(lo, hi))
     k = (hi - lo) * per_batch
-    parts = []
-    for b in range(b0, b0 + group):     # the batches' starting points, one after another
+    # The batches' starting points, one after another, written straight into the tracer's
+    # float32 rows (the same rounding as converting the float64 footprint afterwards).
+    position = np.empty((k * group, 3), np.float32)
+    normal = np.empty((k * group, 3), np.float32)
+    u = np.empty((k * group, 2))
+    u_mix = np.empty(k * group)
+    for i, b in enumerate(range(b0, b0 + group)):
+        rows = slice(i * k, (i + 1) * k)
         fp = sample_footprint(sub, per_batch, rng, include_center=(b == 0))
-        u, u_mix = stratified_first_uniforms(hi - lo, per_batch, rng)
-        parts.append((fp.position.reshape(k, 3), fp.normal.reshape(k, 3), u.reshape(k, 2),
-                      u_mix.reshape(k)))
-    position, normal, u, u_mix = (np.concatenate(p) if group > 1 else p[0] for p in zip(*parts))
+        position[rows] = fp.position.reshape(k, 3)
+        normal[rows] = fp.normal.reshape(k, 3)
+        del fp
+        first, choice = stratified_first_uniforms(hi - lo, per_batch, rng)
+        u[rows], u_mix[rows] = first.reshape(k, 2), choice.reshape(k)
     control = np.zeros((k * group, 3), np.float32) if tracer.control is not None else None
     values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
                               u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group),

@@ -376,9 +376,11 @@ def sample_footprint(texels, n, rng, include_center=True):
         pending[idx[0][ok], idx[1][ok]] = False
     bary = np.stack([b0, b1, 1.0 - b0 - b1], axis=-1)
     corners = texels.triangle_corners[texels.triangle]  # (m, 3, 3)
-    # b0 c0 + b1 c1 + b2 c2 = c2 + b0 (c0 - c2) + b1 (c1 - c2), broadcast over the samples.
-    position = (corners[:, None, 2] + b0[..., None] * (corners[:, None, 0] - corners[:, None, 2])
-                + b1[..., None] * (corners[:, None, 1] - corners[:, None, 2]))
+    # b0 c0 + b1 c1 + b2 c2 = c2 + b0 (c0 - c2) + b1 (c1 - c2), broadcast over the samples
+    # (the edges once per texel, the sums in place: the same float64 operations).
+    position = b0[..., None] * (corners[:, 0] - corners[:, 2])[:, None]
+    position += corners[:, None, 2]
+    position += b1[..., None] * (corners[:, 1] - corners[:, 2])[:, None]
     normals = np.asarray(texels.triangle_normals, dtype=np.float64)
     if normals.ndim == 3:
         normal = np.einsum("mnk,mkj->mnj", bary, normals[texels.triangle])

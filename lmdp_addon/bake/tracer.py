@@ -69,7 +69,7 @@ from .. import world as world_light
 from ..bsdf import GlossyRows, VertexBSDF
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
-from ..sampling import dot, rows
+from ..sampling import dot, rows, set_rows
 from ..transparency import Transparency
 from .clamp import clamp_light
 from .content import BakeContent, times_color
@@ -286,8 +286,9 @@ class IndirectTracer:
                 within = ((bounce - n_glossy) <= self.max_bounces) & (n_glossy <= self.glossy_limit)
                 h = h[within[h]]
             # ---- the vertex y_bounce: β_k = β_{k-1} w_{k-1} ρ(y_k) ----
-            idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(h, idx, origin, d, w, beta, tri, dist,
-                                                                      bu, bv)
+            # (the origins are not needed past this point; the distances only at y_1 by the gather)
+            dist = np.take(dist, h) if bounce == 1 and (control_out is not None or self.gather is not None) else None
+            idx, d, w, beta, tri, bu, bv = _select_rows(h, idx, d, w, beta, tri, bu, bv)
             p_min, n_glossy = _take(p_min, h), _take(n_glossy, h)
             if self.clamp is not None and bounce >= self.roulette_from:   # Cycles' roulette before y_bounce
                 keep, p_keep = self._cycles_roulette(idx, beta, w, rho0, rng)
@@ -303,10 +304,10 @@ class IndirectTracer:
                 # β_k = β_{k-1} w_{k-1}: the BSDF's weight f cos / p joins when ω_k is sampled
                 beta_hit[glossy] = rows(beta, glossy) * rows(w, glossy)[:, None]
             beta = beta_hit
-            wi = -d
+            wi = -d if self.glossy is not None else None   # the view direction of glossy vertices
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
-            objs = self.objects[tri]
+            objs = np.take(self.objects, tri)
             z_ind = None
             if bounce == 1 and control_out is not None:    # RESIDUAL: ẑ_ind(y_1) of g
                 z_ind = self.control.indirect_at(tri, bu, bv, pos, gnrm, front, objs, dist)
@@ -433,7 +434,7 @@ class IndirectTracer:
         if self.clamp is not None:
             light, count = clamp_light(light, self.clamp.limit(bounce), None if rho0 is None else rows(rho0, at))
             stats.clamped += count
-        L[at] += light
+        _add_rows(L, at, light)
 
     def _add_light_samples(self, L, at, beta, samples, direct, bounce, rho0, stats):
         """The light samples ``samples`` (:meth:`_light_samples`, summed ``direct``) of the paths
@@ -499,11 +500,12 @@ class IndirectTracer:
         corners), the shading normal N and the geometric normal Ng of the side the ray arrived
         on (both flipped on a back face, as Cycles does; N = Ng on flat triangles), whether that
         is the front, and the throughput ``β_k = β_{k-1} w_{k-1} ρ(y_k)``."""
-        pos = (rows(self.corner0, tri) + bu[:, None] * rows(self.edge1, tri)
-               + bv[:, None] * rows(self.edge2, tri))
-        ng = rows(self.face_normals, tri)
-        front = dot(ng, d) < 0
-        gnrm = np.where(front[:, None], ng, -ng)
+        pos = rows(self.corner0, tri)                     # c0 + u e1 + v e2, in place
+        pos += rows(self.edge1, tri) * bu[:, None]
+        pos += rows(self.edge2, tri) * bv[:, None]
+        gnrm = rows(self.face_normals, tri)
+        front = dot(gnrm, d) < 0
+        np.negative(gnrm, out=gnrm, where=~front[:, None])     # Ng of the side the ray arrived on
         nrm = self.scene.shading_normals(tri, bu, bv, side=front) if self.smooth else gnrm
         albedo = self.scene.albedo_at(tri, bu, bv) if self.textured else rows(self.albedo, tri)
         return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
@@ -718,9 +720,28 @@ def _even_colour(L, colour):
     return L
 
 
+def _add_rows(L, idx, values):
+    """``L[idx] += values`` for the distinct rows ``idx`` of the C-contiguous (n, 3) float32
+    ``L``: the same sums, with the rows gathered by ``np.take`` and written back as 12-byte
+    items (numpy's fancy indexing of (n, 3) rows is several times slower)."""
+    total = np.take(L, idx, axis=0)
+    total += values
+    set_rows(L, idx, total)
+
+
 def _select_rows(index, *arrays):
-    """The rows ``index`` of every array (the live paths of a wavefront)."""
-    return tuple(np.take(a, index, axis=0) for a in arrays)
+    """The rows ``index`` (increasing, as ``np.flatnonzero`` gives them) of every array (the
+    live paths of a wavefront); when that is every row, the arrays themselves. An array passed
+    twice (flat scenes: the shading normals are the geometric ones) is gathered once and stays
+    one array, None stays None."""
+    first = next((a for a in arrays if a is not None), None)
+    if first is not None and len(index) == len(first):
+        return arrays
+    taken = {}
+    for a in arrays:
+        if a is not None and id(a) not in taken:
+            taken[id(a)] = np.take(a, index, axis=0)
+    return tuple(None if a is None else taken[id(a)] for a in arrays)
 
 
 def _channel_max(rgb):

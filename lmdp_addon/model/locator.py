@@ -130,14 +130,20 @@ class StateLocator:
         """Index into the tables (``grid_point``) of the cell holding the point with ray-hit
         barycentrics ``(u, v)`` (weights of the triangle's second and third corner) on ``tri``."""
         r = np.take(self.grid_origin, tri)
+        r0, r1 = r == 0, r == 1
         w0 = 1.0 - u - v
-        gu_coord = np.where(r == 0, u, np.where(r == 1, v, w0))     # weight of corner r + 1
-        gv_coord = np.where(r == 0, v, np.where(r == 1, w0, u))     # weight of corner r + 2
+        gu_coord = np.where(r0, u, np.where(r1, v, w0))     # weight of corner r + 1
+        gv_coord = np.where(r0, v, np.where(r1, w0, u))     # weight of corner r + 2
         gu = np.take(self.gu, tri)
         gv = np.take(self.gv, tri)
-        i = np.clip((gu_coord * gu).astype(np.int64), 0, gu - 1)
-        j = np.clip((gv_coord * gv).astype(np.int64), 0, gv - 1)
-        return np.take(self.grid_offset, tri) + i * gv + j
+        i = np.multiply(gu_coord, gu).astype(np.int64)      # (float64 products, as numpy promotes)
+        np.clip(i, 0, gu - 1, out=i)
+        j = np.multiply(gv_coord, gv).astype(np.int64)
+        np.clip(j, 0, gv - 1, out=j)
+        i *= gv
+        i += j
+        i += np.take(self.grid_offset, tri)
+        return i
 
     def _row_length(self, t, i):
         """Cells of row i of triangle t's grid that meet the triangle: ``j < gv (1 - i/gu)``."""
