@@ -252,6 +252,13 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
     beside the light (which hardly sees it) would read their z; b evaluates it where the rays
     land.
 
+    The recursion runs over the LMDP's unknowns. A glossy unknown (x, k) takes as its source
+    ``w + P_kN (q ⊙ D)``, D the direct light of the unknowns it lands on as the LMDP holds it
+    (their emitter and lamp columns, ``P_NT z_T``): its BSDF rays are the build's, not those of
+    :func:`direct_after_one_bounce`, which samples a cosine lobe. The field holds one ẑ per
+    point, a glossy point's the cosine-weighted mean of its directions' (the tracer path-traces
+    on from glossy hits).
+
     With ``max_bounces`` = N the recursion runs from ẑ = w for N - 1 steps: the gather point is
     the path's first vertex, so the light it reads has at most N - 1 more vertices, as the
     tracer's and Cycles' paths of N bounces (the converged ẑ would add the light of every
@@ -273,13 +280,31 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
         w = np.zeros_like(w)
     z_hat = w.copy()
     steps = 100_000 if max_bounces is None else int(max_bounces) - 1
+    unknowns = lmdp.dynamics.unknown_map
     if steps > 0:
-        source = direct_after_one_bounce(lmdp, gather_rays_per_point(lmdp.states.n_points), seed) + w
+        b = direct_after_one_bounce(lmdp, gather_rays_per_point(lmdp.states.n_points), seed)
+        source = b[unknowns.point] + w
+        glossy = np.flatnonzero(unknowns.stratum >= 0)
+        if len(glossy):
+            direct = _direct_columns(lmdp.dynamics, _environment(lmdp.scene) is not None)
+            D = np.asarray(problem.P[:, direct] @ problem.z_terminal[direct - problem.n_points], dtype=np.float64)
+            source[glossy] = w[glossy] + np.asarray(P_NN[glossy] @ (q * D))
         for _ in range(steps):
             new = source + np.asarray(P_NN @ (q * z_hat))
             converged = np.max(np.abs(new - z_hat)) <= 1e-12 * max(np.max(np.abs(new)), 1e-300)
             z_hat = new
             if converged:
                 break
-    return GatherField(locator=guide.locator, irradiance=np.maximum(z_hat, 0.0), same_scene=guide.same_scene,
+    irradiance = unknowns.point_values(np.maximum(z_hat, 0.0), lmdp.states.stratum_weight)
+    return GatherField(locator=guide.locator, irradiance=irradiance, same_scene=guide.same_scene,
                        object_map=guide.object_map)
+
+
+def _direct_columns(dynamics, world):
+    """Columns of P whose terminals the tracer samples as direct light at a gather point: the
+    emitters and the lamps, and the world's with an environment map (``world``)."""
+    N, E = dynamics.n_unknowns, dynamics.n_emitters
+    cols = [np.arange(N, N + E), N + E + dynamics.n_world + 1 + np.arange(dynamics.n_lamps)]
+    if world:
+        cols.append(dynamics.world_columns)
+    return np.concatenate(cols).astype(np.int64)

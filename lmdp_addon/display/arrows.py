@@ -191,11 +191,13 @@ def nearest_state(points, normals, location, candidates=None, side_tolerance=1e-
     return int(idx[np.argmin(dist2)])
 
 
-def next_state_targets(policy_row_indices, policy_row_values, n_points, count=None):
+def next_state_targets(policy_row_indices, policy_row_values, n_points, count=None, point_of=None):
     """The next states x' of one state's u*(x'|x) that are surface points, largest first.
 
     ``policy_row_*``: the CSR row of :func:`lmdp_addon.model.policy.optimal_policy` (column indices and
-    probabilities; columns >= n_points are terminals). Returns ``(points (K,), probability (K,),
+    probabilities; columns >= n_points are terminals, ``n_points`` then counting the unknowns).
+    ``point_of (N,)``: the point of each unknown (``UnknownMap.point``) where glossy points carry
+    several; their probabilities are summed per point. Returns ``(points (K,), probability (K,),
     terminal_probability)``: the surface next states (at most ``count``), and the total
     probability of the terminal states (lights, world, void) which have no position.
     """
@@ -204,6 +206,9 @@ def next_state_targets(policy_row_indices, policy_row_values, n_points, count=No
     surface = (cols < n_points) & (vals > 0)
     terminal = float(vals[cols >= n_points].sum())
     cols, vals = cols[surface], vals[surface]
+    if point_of is not None:
+        cols, inverse = np.unique(np.asarray(point_of)[cols], return_inverse=True)
+        vals = np.bincount(inverse.reshape(-1), weights=vals, minlength=len(cols))
     order = np.argsort(-vals, kind="stable")
     if count is not None:
         order = order[:int(count)]
@@ -467,6 +472,16 @@ def policy_view(states, u, subset, max_points, scale, candidates, min_probabilit
     return PolicyView(arrows=arrows, subset=subset, points=points, probe=probe)
 
 
+def probe_unknown(states, point):
+    """The unknown the probe shows for ``point``: its only one, or on a glossy point the one of
+    the outgoing stratum whose centre is nearest the normal (u*(x'|x, k) of that direction)."""
+    unknowns = states.unknowns
+    first = int(unknowns.first[point])
+    if not unknowns.glossy[point]:
+        return first
+    return first + int(np.argmax(stratum_centers(states.strata_u, states.strata_v)[:, 2]))
+
+
 def probe(states, u, policy_row, location, scale, next_states=24, candidates=None, longest=False):
     """:class:`Probe` of the state nearest to ``location`` (:func:`nearest_state`).
 
@@ -475,6 +490,8 @@ def probe(states, u, policy_row, location, scale, next_states=24, candidates=Non
     Every stratum arrow is drawn (the whole distribution, as in Figure 5), with length
     ``scale x u*(k|x)``; with ``longest=True`` the most probable stratum's arrow is ``scale``
     long instead (a single state's distribution is easier to read at a fixed size).
+    ``policy_row(i)`` takes the point's unknown (:func:`probe_unknown`: on a glossy point the
+    one of its outgoing stratum nearest the normal), whose next states are summed per point.
     """
     i = nearest_state(states.points, states.normals, location, candidates)
     if i < 0:
@@ -484,8 +501,10 @@ def probe(states, u, policy_row, location, scale, next_states=24, candidates=Non
     arrows = stratum_arrows(states.points[i:i + 1], states.frames[i:i + 1], u[i:i + 1], states.strata_u,
                             states.strata_v, scale, 0.0, lift=0.01 * float(scale))
     arrows.point[:] = i
-    cols, vals = policy_row(i)
-    targets, probability, terminal = next_state_targets(cols, vals, states.n_points, next_states)
+    cols, vals = policy_row(probe_unknown(states, i))
+    unknowns = states.unknowns
+    targets, probability, terminal = next_state_targets(
+        cols, vals, unknowns.n_unknowns, next_states, None if unknowns.identity else unknowns.point)
     return Probe(state=i, location=np.asarray(location, dtype=np.float64).reshape(3), arrows=arrows,
                  targets=targets, target_probability=probability, terminal_probability=terminal,
                  target_points=states.points[targets] + 0.01 * float(scale) * states.normals[targets])

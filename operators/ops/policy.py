@@ -215,8 +215,8 @@ class LMDP_OT_probe_policy(EngineJob, bpy.types.Operator):
             return U.indices[U.indptr[i]:U.indptr[i + 1]], U.data[U.indptr[i]:U.indptr[i + 1]]
         probe = arrow_geometry.probe(states, u, row, inputs["location"], inputs["scale"], inputs["next_states"],
                                      longest=inputs["longest"])
-        cols, vals = row(probe.state)
-        m = states.n_points
+        cols, vals = row(arrow_geometry.probe_unknown(states, probe.state))
+        m = states.n_unknowns
         to_lights = float(vals[(cols >= m) & (cols < m + dynamics.n_emitters)].sum())
         mesh = None
         if inputs["as_mesh"]:
