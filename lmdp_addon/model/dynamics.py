@@ -6,8 +6,9 @@ density proportional to BRDF·cos within the stratum, so each carries exactly ``
 (:mod:`~lmdp_addon.model.hits`):
 
 * the nearest state point on the hit object whose normal faces the side that was hit
-  (the next state is that point with the reversed ray direction as outgoing direction; for the
-  Lambertian reduction only the point matters, see ``design.md``),
+  (the next state is that point with the reversed ray direction as outgoing direction; on a
+  Lambertian point only the point matters, on a glossy one the stratum of that direction: its
+  unknown, see below and ``design.md``),
 * an emitter terminal (uniform emission: one terminal per emitter group),
 * the world terminal (escaping ray, world not black); with an environment map (HDRI) one world
   terminal per equal-area direction bin (``world.bin_of_direction``), whose z is the map's mean
