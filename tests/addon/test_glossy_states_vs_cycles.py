@@ -164,3 +164,33 @@ def test_glossy_state_radiance_matches_cycles(fresh_scene, lmdp_ext, roughness):
     assert rms_new < 0.10, rms_new
     assert abs(mean_new) < 0.05, mean_new
     assert rms_old > 0.3 and rms_old > 4.0 * rms_new, (rms_old, rms_new)
+
+
+def test_glossy_box_operators_show_and_export_the_directional_unknowns(fresh_scene, lmdp_ext, tmp_path):
+    """GLOSSY_BOX through the operators: Run All, Show Desirability (one value per state point:
+    a glossy point's radiosity-equivalent), Show Policy and Probe Policy on the floor (the
+    probe's next states are points, the arrows the u* of the view straight down), Export."""
+    session = lmdp_ext.sub("operators.session")
+    assert bpy.ops.lmdp.add_demo_scene(kind='GLOSSY_BOX') == {'FINISHED'}
+    scene = bpy.context.scene
+    scene.lmdp.point_count = 600
+    assert bpy.ops.lmdp.run_pipeline(show=True, bake=False) == {'FINISHED'}
+    s = session.session_for(scene)
+    states = s.require("states")
+    assert states.unknowns.n_glossy > 0 and s.require("solution").y.shape[0] == states.n_unknowns
+    floor = bpy.data.objects["Floor"]
+    assert "lmdp_z_color" in floor.data.color_attributes
+    select([floor], active=floor)
+    scene.lmdp.policy_max_points = 10
+    assert bpy.ops.lmdp.show_policy() == {'FINISHED'}
+    view = s.require("policy")
+    assert np.all(states.glossy[view.points]) and view.arrows.count > 0
+    i = int(np.flatnonzero(states.glossy & s.require("dynamics").locator.targets)[0])
+    scene.cursor.location = tuple(states.points[i] + [0.0, 0.0, 0.001])
+    assert bpy.ops.lmdp.probe_policy(next_states=8) == {'FINISHED'}
+    probe = s.require("policy").probe
+    assert probe.state == i and np.all(probe.targets < states.n_points) and len(set(probe.targets)) == len(probe.targets)
+    path = tmp_path / "glossy.npz"
+    assert bpy.ops.lmdp.export_npz(filepath=str(path)) == {'FINISHED'}
+    data = np.load(path)
+    np.testing.assert_array_equal(data["point_unknowns"], states.unknowns.count)

@@ -126,7 +126,8 @@ def test_sharp_glossy_policy_concentrates_around_the_mirror_direction():
     U = sp.csr_matrix(optimal_policy(result.lmdp, result.solution))
     centres = stratum_centers(4, 4)
     k = int(np.argmin(np.abs(centres[:, 2] - 0.65)))   # a stratum about 50° from the normal
-    floor = np.flatnonzero(states.glossy & (np.abs(states.points[:, :2]).max(axis=1) < 0.3))
+    floor = np.flatnonzero(states.glossy & (np.abs(states.points[:, :2]).max(axis=1) < 0.3)
+                           & result.dynamics.locator.targets)        # not under the boxes (buried)
 
     def spread(row, point, axis):
         cols, p = U.indices[U.indptr[row]:U.indptr[row + 1]], U.data[U.indptr[row]:U.indptr[row + 1]]
@@ -199,3 +200,31 @@ def test_display_export_and_gather_read_the_unknowns(tmp_path):
     np.testing.assert_allclose(data["z"][:N], data["q"][:N] * (P @ data["z"]), rtol=1e-6, atol=1e-6)
     gather = build_gather(build_guide(scene, result), result, max_bounces=8, seed=1)
     assert gather.irradiance.shape == (states.n_points, 3) and np.all(np.isfinite(gather.irradiance))
+
+
+def test_policy_arrows_of_a_sharp_glossy_point_point_along_the_mirror():
+    """The arrows of a glossy point show u* of its unknown looking straight down on it
+    (``arrows.directional_policy``): on a roughness-0.05 floor they gather in the stratum of
+    that direction's mirror image; Lambertian points keep ``stratum_policy``'s rows."""
+    from lmdp_addon.display.arrows import directional_policy, probe_unknowns
+    from lmdp_addon.model.policy import stratum_policy
+    from lmdp_addon.model.hemisphere import stratum_of_local_direction
+    scene = glossy_floor_box(0.05)
+    result = pipeline.run_all(scene, Settings(point_count=1500, rays_per_stratum=8, light_samples=16, seed=4,
+                                              cost_mode="PHYSICAL"))
+    states = result.states
+    u = stratum_policy(result.dynamics, result.solution, "all")
+    U = optimal_policy(result.lmdp, result.solution)
+    shown = directional_policy(scene, states, result.dynamics, u, U)
+    lamb = ~states.glossy
+    np.testing.assert_array_equal(shown[lamb], u[lamb])
+    floor = np.flatnonzero(states.glossy & (np.abs(states.points[:, :2]).max(axis=1) < 0.3)
+                           & result.dynamics.locator.targets)        # not under the boxes (buried)
+    k = states.unknowns.stratum[probe_unknowns(states, floor)]
+    wo = stratum_centers(4, 4)[k]
+    mirror = wo * [-1.0, -1.0, 1.0]                       # the mirror image about the normal (local z)
+    k_mirror = stratum_of_local_direction(mirror, 4, 4)
+    np.testing.assert_allclose(shown[floor].sum(axis=1), 1.0)
+    on_mirror = shown[floor, k_mirror]
+    assert np.median(on_mirror) > 0.5, np.round(on_mirror, 2)
+    assert np.median(u[floor, k_mirror]) < 0.3      # the cosine rows (the guide's) spread out
