@@ -23,11 +23,11 @@ no ray hits: their transitions come from light samples alone (:meth:`_DynamicsBu
 Glossy points (a material with a microfacet lobe) carry one unknown per outgoing stratum k
 (:mod:`~lmdp_addon.model.unknowns`). Their rows leave x with ``rays_per_stratum`` rays sampled
 from the BSDF (:class:`~lmdp_addon.bsdf.VertexBSDF`) for the outgoing direction ω_k, the centre
-of stratum k: a ray carries ``lum(f cos / p) / (R lum(a_k))``, with ``a_k`` (RGB) the mean of
-the R samples' ``f cos / p`` (the directional albedo, the state cost's ``q`` in PHYSICAL mode:
-``costs.py``), so the row sums to one and ``a_k`` times it estimates ∫ f(ω_i, ω_k) cos θ_i (...)
-dω_i (eq. 3.1 with a non-Lambertian BRDF; the luminance carries the colour of f's shape, exact
-when f's colour does not depend on ω_i). Their next-event samples (emitters, lamps) are weighted
+of stratum k: a ray carries ``lum(f cos / p) / (R lum(a_k))``, with ``a_k`` (RGB) the directional
+albedo (:func:`directional_albedo`; the state cost's ``q`` in PHYSICAL mode, ``costs.py``), so
+``a_k`` times the row is the unbiased estimate of ∫ f(ω_i, ω_k) cos θ_i (...) dω_i (eq. 3.1 with
+a non-Lambertian BRDF; the luminance carries the colour of f's shape, exact when f's colour does
+not depend on ω_i) and the row sums to one in expectation. Their next-event samples (emitters, lamps) are weighted
 by ``f cos`` for ω_k. A ray that lands on a glossy point goes to the unknown of the stratum that
 contains the reversed ray direction there; on a Lambertian point to its one unknown. Glossy points
 also keep their cosine stratum rows (``stratum_transitions``, read by the guide).
@@ -191,8 +191,9 @@ class PassiveDynamics:
     @property
     def row_sum_error(self):
         """Largest deviation of a row sum of P from 1 (float32 rounding without next-event
-        estimation; Monte Carlo noise of the emitter terms with it). The lamps' columns are left
-        out: their masses are light, not probabilities (``lamps.py``)."""
+        estimation; Monte Carlo noise of the emitter terms with it, and of the glossy unknowns'
+        BSDF weights, whose rows sum to one in expectation). The lamps' columns are left out:
+        their masses are light, not probabilities (``lamps.py``)."""
         P = self.P[:, :self.n_columns - self.n_lamps] if self.n_lamps else self.P
         sums = np.asarray(P.sum(axis=1)).ravel()
         if self.glossy_albedo is not None:   # glossy unknowns that reflect nothing have empty rows
@@ -260,6 +261,43 @@ def check_budget(n_points, n_strata, rays_per_stratum, budget_gb, light_samples=
             "Stratum, or raise the Memory Budget setting")
     return need
 
+
+
+#: cos θ nodes of :func:`directional_albedo`'s table, and its samples per node (n x n, stratified).
+ALBEDO_NODES = 33
+ALBEDO_SAMPLES = 16
+
+
+def directional_albedo(materials, material, diffuse, mu):
+    """(k, 3) directional albedo ``a(μ) = ∫ f(ω_i, ω_o) cos θ_i dω_i`` of the BSDFs of ``material
+    (k,)`` with diffuse colour ``diffuse (k, 3)`` for outgoing directions at ``cos θ_o = mu (k,)``
+    from the microfacet normal (``VertexBSDF.mu``), clipped to [0, 1]. Linear in the diffuse
+    colour, so each material is tabulated once, white and black, at :data:`ALBEDO_NODES` cosines
+    (``VertexBSDF.albedo`` with 16 x 16 stratified samples, within about 0.5 % of 32 x 32), and
+    read by linear interpolation; 0 where μ <= 0. Directions that a smooth shading normal sends
+    below the geometric surface are not taken out (the rays' own weights are)."""
+    material = np.asarray(material, dtype=np.int64)
+    mu = np.asarray(mu, dtype=np.float64)
+    diffuse = np.asarray(diffuse, dtype=np.float64)
+    used = np.unique(material)
+    nodes = np.linspace(0.0, 1.0, ALBEDO_NODES)
+    nodes[0] = 1e-3
+    n = len(nodes)
+    rows = np.repeat(used, n)
+    mus = np.tile(nodes, len(used))
+    wi = np.stack([np.sqrt(1.0 - mus * mus), np.zeros(len(mus)), mus], 1)
+    up = np.tile([0.0, 0.0, 1.0], (len(mus), 1))
+    white = VertexBSDF(materials, rows, np.ones((len(mus), 3)), up, wi).albedo(ALBEDO_SAMPLES).reshape(len(used), n, 3)
+    black = VertexBSDF(materials, rows, np.zeros((len(mus), 3)), up, wi).albedo(ALBEDO_SAMPLES).reshape(len(used), n, 3)
+    out = np.zeros((len(material), 3))
+    where = np.searchsorted(used, material)
+    for j in range(len(used)):           # loop over materials (a few), not over unknowns
+        sel = np.flatnonzero(where == j)
+        for c in range(3):
+            b = np.interp(mu[sel], nodes, black[j, :, c])
+            w = np.interp(mu[sel], nodes, white[j, :, c])
+            out[sel, c] = b + np.clip(diffuse[sel, c], 0.0, None) * (w - b)
+    return np.clip(np.where((mu > 0)[:, None], out, 0.0), 0.0, 1.0)
 
 
 def build_passive_dynamics(scene, states, rays_per_stratum=4, seed=0, progress=None,
@@ -375,7 +413,7 @@ class _DynamicsBuild:
         """The glossy unknowns' BSDFs and their R samples each (deterministic per seed): for
         unknown (x, k) the BSDF of x set up for the outgoing direction ω_k (the centre of stratum
         k in x's frame), R directions ω_i drawn from it (stratified in the first uniform), their
-        ``f cos / p`` and densities, and the directional albedo a_k (their mean weight)."""
+        ``f cos / p`` and densities, and the directional albedo a_k (:func:`directional_albedo`)."""
         u = self.unknowns
         self.glossy_rank = np.cumsum(u.glossy) - 1
         self.glossy_bsdf = None
@@ -400,7 +438,8 @@ class _DynamicsBuild:
         self.glossy_wi = wi.astype(np.float32)                   # (G*S*R, 3) the rays' directions
         self.glossy_weight = weight                              # (G*S*R, 3) f cos / p
         self.glossy_pdf = pdf
-        self.glossy_albedo = weight.reshape(len(pts), R, 3).mean(axis=1)
+        self.glossy_albedo = directional_albedo(scene.materials, scene.triangle_material[tri], diffuse,
+                                                self.glossy_bsdf.mu)
         self.glossy_lum = self.glossy_albedo @ LUMINANCE         # normaliser of the rows
 
     def _unknown_columns(self, col, dirs):

@@ -68,10 +68,12 @@ def test_lambertian_scenes_keep_one_unknown_per_point():
     assert dyn.P.shape == (300, dyn.n_columns) and dyn.n_unknowns == 300 and dyn.glossy_albedo is None
 
 
-def test_glossy_points_carry_a_row_per_outgoing_stratum_that_sums_to_one():
-    """Without next-event estimation every ray lands somewhere: a glossy unknown's row sums to
-    exactly one (float32), whatever its directional albedo; its cosine stratum rows (the
-    guide's) still sum to the strata's cosine masses."""
+def test_glossy_points_carry_a_row_per_outgoing_stratum():
+    """Without next-event estimation every ray lands somewhere: a Lambertian point's row sums to
+    exactly one (float32); a glossy unknown's row sums to the mean of its rays' f cos / p over
+    its directional albedo a_k, one in expectation (their mean over the unknowns within Monte
+    Carlo error of one); their cosine stratum rows (the guide's) still sum to the strata's
+    cosine masses."""
     scene = scenes.build_scene_arrays("GLOSSY_BOX")
     states = sample_states(scene, 400, seed=2)
     u = states.unknowns
@@ -80,10 +82,11 @@ def test_glossy_points_carry_a_row_per_outgoing_stratum_that_sums_to_one():
     dyn = build_passive_dynamics(scene, states, 4, seed=2, light_samples=0)
     assert dyn.P.shape == (states.n_unknowns, dyn.n_columns)
     sums = np.asarray(dyn.P.sum(axis=1)).ravel()
-    lit = np.ones(len(sums), bool)
-    lit[u.stratum >= 0] = dyn.glossy_albedo @ LUMINANCE > 0
-    np.testing.assert_allclose(sums[lit], 1.0, atol=2e-6)
-    assert dyn.row_sum_error < 2e-6
+    lamb = u.stratum < 0
+    np.testing.assert_allclose(sums[lamb], 1.0, atol=2e-6)
+    lit = dyn.glossy_albedo @ LUMINANCE > 0
+    glossy = sums[~lamb][lit]
+    assert abs(glossy.mean() - 1.0) < 5.0 * glossy.std() / np.sqrt(len(glossy)) + 1e-3, (glossy.mean(), glossy.std())
     strata = np.asarray(dyn.stratum_transitions.sum(axis=1)).reshape(states.n_points, -1)
     np.testing.assert_allclose(strata, np.tile(states.stratum_weight, (states.n_points, 1)), atol=2e-6)
     # rows of the glossy unknowns land on glossy unknowns too (the floor sees the sphere)
@@ -94,8 +97,9 @@ def test_glossy_points_carry_a_row_per_outgoing_stratum_that_sums_to_one():
 
 
 def test_directional_albedo_is_the_bsdfs():
-    """q of a glossy unknown (PHYSICAL) is the mean of its R rays' f cos / p: within Monte Carlo
-    error of the BSDF's directional albedo for the stratum's centre (32 x 32 stratified samples)."""
+    """q of a glossy unknown (PHYSICAL) is its directional albedo (``dynamics.directional_albedo``,
+    tabulated per material over cos θ): within 1 % of the BSDF's own for the stratum's centre
+    (``VertexBSDF.albedo``, 32 x 32 stratified samples)."""
     scene = glossy_floor_box(0.3)
     states = sample_states(scene, 200, seed=3)
     dyn = build_passive_dynamics(scene, states, 32, seed=3, light_samples=0)
@@ -108,9 +112,8 @@ def test_directional_albedo_is_the_bsdfs():
                              np.zeros((len(g), 3)), states.normals[pts], wo)
     want = vertex.albedo(32)
     got = lmdp.q[g]
-    # per unknown: 32 samples of a weight F G1 in [0, 0.8]
-    assert np.abs(got - want).max() < 0.1
-    assert abs(got.mean() - want.mean()) < 0.005
+    assert np.abs(got - want).max() < 0.01
+    assert abs(got.mean() - want.mean()) < 0.002
     # grazing strata reflect less than the ones near the normal (no Fresnel: the masking G1)
     cos = stratum_centers(4, 4)[u.stratum[g], 2]
     assert got[cos > 0.9, 0].mean() > got[cos < 0.5, 0].mean()
