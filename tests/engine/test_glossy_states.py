@@ -231,3 +231,31 @@ def test_policy_arrows_of_a_sharp_glossy_point_point_along_the_mirror():
     on_mirror = shown[floor, k_mirror]
     assert np.median(on_mirror) > 0.5, np.round(on_mirror, 2)
     assert np.median(u[floor, k_mirror]) < 0.3      # the cosine rows (the guide's) spread out
+
+
+def test_gather_source_reflects_direct_light_through_glossy_hits():
+    """b(x) (``gather.direct_after_one_bounce``) at box states near the Cornell box's sharp
+    (roughness 0.1) Glossy floor: the light reaching them after exactly one reflection, much
+    of it the light's image in the floor, is the tracer's one-bounce estimate at the same points
+    within 5 standard errors of both (b's from 8 seeds: its one light sample per glossy hit is
+    noisier than the tracer's MIS). With the floor's hemispherical albedo in place of its BSDF
+    b was 30 % to 5x too bright there."""
+    from bake_scenes import K, trace_at
+    from lmdp_addon.bake.gather import direct_after_one_bounce
+    from lmdp_addon.bake.tracer import IndirectTracer
+    scene = glossy_floor_box(0.1)
+    lmdp = pipeline.run_all(scene, Settings(point_count=512, cost_mode="PHYSICAL", seed=7))
+    st = lmdp.states
+    low = lmdp.dynamics.locator.targets & (st.points[:, 2] > 0.02) & (st.points[:, 2] < 0.35)
+    points = np.concatenate([np.flatnonzero(low & (st.point_object == scene.object_names.index(n)))[:3]
+                             for n in ("ShortBox", "TallBox")])
+    assert len(points) == 6
+    n, seeds = 5000, 8
+    b = np.stack([direct_after_one_bounce(lmdp, n, seed=s, points=points)[points] for s in range(seeds)])
+    b_se = b.std(axis=0, ddof=1) / np.sqrt(seeds)
+    tracer = IndirectTracer(scene, "UNGUIDED", max_bounces=1, caster=lmdp.dynamics.caster)
+    for k, i in enumerate(points):
+        pt, _ = trace_at(tracer, st.points[i], st.normals[i], 40_000, seed=10 + k)
+        se = np.sqrt(b_se[k] ** 2 + pt.var(axis=0, ddof=1) / len(pt))
+        assert np.all(np.abs(b[:, k].mean(axis=0) - pt.mean(axis=0)) <= K * se + 1e-12), \
+            (i, b[:, k].mean(axis=0), pt.mean(axis=0), se)
