@@ -259,3 +259,21 @@ def test_gather_source_reflects_direct_light_through_glossy_hits():
         se = np.sqrt(b_se[k] ** 2 + pt.var(axis=0, ddof=1) / len(pt))
         assert np.all(np.abs(b[:, k].mean(axis=0) - pt.mean(axis=0)) <= K * se + 1e-12), \
             (i, b[:, k].mean(axis=0), pt.mean(axis=0), se)
+
+
+def test_glossy_build_is_byte_identical_whatever_the_thread_count(monkeypatch):
+    """The glossy rows are drawn at set-up and per batch (their own generators), so one build
+    thread or several give the same matrices to the byte."""
+    from lmdp_addon.model import dynamics as dynamics_module
+    scene = scenes.build_scene_arrays("GLOSSY_BOX")
+    states = sample_states(scene, 300, seed=8)
+    monkeypatch.setattr(dynamics_module, "RAYS_PER_BATCH", 1 << 11)     # several batches
+    out = []
+    for threads in (1, 3):
+        monkeypatch.setattr(dynamics_module, "BUILD_THREADS", threads)
+        out.append(build_passive_dynamics(scene, states, 2, seed=8, light_samples=4))
+    for name in ("P", "stratum_transitions"):
+        a, b = getattr(out[0], name), getattr(out[1], name)
+        for part in ("data", "indices", "indptr"):
+            assert np.array_equal(getattr(a, part), getattr(b, part)), (name, part)
+    assert np.array_equal(out[0].glossy_albedo, out[1].glossy_albedo)
