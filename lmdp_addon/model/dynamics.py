@@ -71,6 +71,8 @@ VOID = "void"
 RAYS_PER_BATCH = 1 << 16
 #: Batches processed concurrently.
 BUILD_THREADS = 3
+#: BSDF samples and evaluations of the glossy unknowns done at once.
+GLOSSY_CHUNK = 1 << 15
 
 
 @dataclass
@@ -228,8 +230,10 @@ def estimate_build_bytes(n_points, n_strata, rays_per_stratum, light_samples=0, 
     """Upper estimate of the peak memory of :func:`build_passive_dynamics` (bytes).
 
     ``n_glossy`` glossy points add S unknowns each: S x R BSDF rays (the same 32 B per ray as
-    the stratum rays), their S x K light-sample entries (48 B each), and the BSDF samples kept
-    for the build (7 float64 per ray).
+    the stratum rays, and 56 B for the samples kept for the build), their S x K light-sample
+    entries (48 B each), and 1 KiB per unknown for its BSDF's set-up (``VertexBSDF``; its
+    evaluations run in chunks of :data:`GLOSSY_CHUNK`). Checked against the peak growth of
+    builds of 433 to 8192 glossy points (K = 32 to 256): 70 to 809 MiB, estimated 148 to 1065.
 
     Terms, with coefficients fitted to the build's peak resident memory in its own process
     (``bench/worker.py``; ``make bench`` reports the measured peak next to this estimate) and
@@ -244,7 +248,8 @@ def estimate_build_bytes(n_points, n_strata, rays_per_stratum, light_samples=0, 
     """
     rays = int(n_points) * int(n_strata) * int(rays_per_stratum)
     glossy_rays = int(n_glossy) * int(n_strata) * int(rays_per_stratum)
-    glossy = (32 + 56) * glossy_rays + 48 * int(n_glossy) * int(n_strata) * int(light_samples)
+    glossy = ((32 + 56) * glossy_rays + 48 * int(n_glossy) * int(n_strata) * int(light_samples)
+              + 1024 * int(n_glossy) * int(n_strata))
     return (glossy + 32 * rays + 48 * int(n_points) * int(light_samples) + 2048 * int(n_points)
             + 768 * int(n_triangles) + 200 * min(rays, BUILD_THREADS * RAYS_PER_BATCH) + 8 * 1024 ** 2)
 
@@ -434,7 +439,11 @@ class _DynamicsBuild:
         n = len(pts) * R
         jitter = rng.random((n, 3))
         jitter[:, 0] = (np.tile(np.arange(R), len(pts)) + jitter[:, 0]) / R
-        wi, weight, pdf = self.glossy_bsdf.subset(np.repeat(np.arange(len(pts)), R)).sample(jitter)
+        wi, weight, pdf = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+        owner = np.repeat(np.arange(len(pts)), R)
+        for a in range(0, n, GLOSSY_CHUNK):   # chunks bound the BSDF's temporaries
+            b = slice(a, a + GLOSSY_CHUNK)
+            wi[b], weight[b], pdf[b] = self.glossy_bsdf.subset(owner[b]).sample(jitter[b])
         self.glossy_wi = wi.astype(np.float32)                   # (G*S*R, 3) the rays' directions
         self.glossy_weight = weight                              # (G*S*R, 3) f cos / p
         self.glossy_pdf = pdf
@@ -545,6 +554,15 @@ class _DynamicsBuild:
         return (owner, local.reshape(-1, 3)[live], omega.reshape(-1, 3)[live], cos_x.reshape(-1)[live],
                 p_light, transmitted, tri_index.reshape(-1)[live])
 
+    def _glossy_eval(self, omega, rows):
+        """``VertexBSDF.eval`` of the glossy unknowns ``rows`` for directions ``omega``, in chunks
+        of :data:`GLOSSY_CHUNK` (the evaluation's temporaries are about 1 KiB per pair)."""
+        fcos, pdf = np.empty((len(rows), 3)), np.empty(len(rows))
+        for a in range(0, len(rows), GLOSSY_CHUNK):
+            b = slice(a, a + GLOSSY_CHUNK)
+            fcos[b], pdf[b] = self.glossy_bsdf.eval(omega[b], rows[b])
+        return fcos, pdf
+
     def _glossy_light_entries(self, gp, gs, state_row, norm):
         """Light samples of the emitters for the glossy unknowns: ``f cos / (K p_light + R p_bsdf)``
         (balance heuristic with their BSDF rays), over lum(a_k)."""
@@ -556,7 +574,7 @@ class _DynamicsBuild:
             return None
         pair_state = (owner[:, None] * S + np.arange(S)).reshape(-1)              # index into gs
         sample = np.repeat(np.arange(len(owner)), S)
-        fcos, pdf = self.glossy_bsdf.eval(omega[sample].astype(np.float64), gs[pair_state])
+        fcos, pdf = self._glossy_eval(omega[sample].astype(np.float64), gs[pair_state])
         mass = (passed[sample] * (fcos @ LUMINANCE) / (self.K * p_light[sample] + self.R * pdf)
                 * norm[pair_state])
         cols = self.N + self.sampler.emitter_of_triangle[tri_index[sample]]
@@ -582,7 +600,7 @@ class _DynamicsBuild:
         pair_state = (base[:, None] * S + np.arange(S)).reshape(-1)
         sample = np.repeat(np.arange(len(owner)), S)
         omega = np.einsum("ki,kij->kj", local, self.states.frames[live][owner])
-        fcos, _ = self.glossy_bsdf.eval(omega[sample], gs[pair_state])
+        fcos, _ = self._glossy_eval(omega[sample], gs[pair_state])
         cos = np.maximum(local[sample, 2], 1e-12)
         m = mass[sample] * np.pi * (fcos @ LUMINANCE) / cos * norm[pair_state]
         cols = self.N + self.E + self.W + 1 + lamp[sample]
