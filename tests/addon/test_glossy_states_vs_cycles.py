@@ -179,7 +179,6 @@ def test_glossy_state_radiance_matches_cycles(fresh_scene, lmdp_ext, roughness):
     assert rms_old > 0.3 and rms_old > 4.0 * rms_new, (rms_old, rms_new)
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(not os.path.exists(GLTF_METAL), reason="the glTF sample is not on this machine")
 @pytest.mark.parametrize("receiver, bound, old_factor", [("Plane", 0.10, 1.5), ("Metallic_Sphere", 0.25, 4.0)])
 def test_imported_gltf_metal_radiance_matches_cycles(fresh_scene, lmdp_ext, demo, receiver, bound, old_factor):
@@ -187,8 +186,7 @@ def test_imported_gltf_metal_radiance_matches_cycles(fresh_scene, lmdp_ext, demo
     (metallic 1, roughness 1) under a smooth-shaded metallic sphere (roughness 0.2), lit by a
     2 m area light 4 m up (the sample's lights import as empties; 512 light samples per point,
     the light being most of what they reflect). z(x, k) of either's states against Cycles'
-    rendering of them, checked as the Cornell floor. Slow (40 s each): every point is glossy,
-    32768 unknowns with 512 light samples per point.
+    rendering of them, checked as the Cornell floor (every point is glossy: 32768 unknowns).
 
     The plane's roughness-1 lobe is nearly view-independent: the bound is the Cornell floor's
     10 %, and the old model is only about twice as far off (measured 4.2 % against 8.6 %). The
