@@ -24,11 +24,6 @@ from test_bake_vs_cycles import CACHE, build
 from test_glossy_vs_cycles import GLTF_METAL, cycles_glossy_settings, glossy_floor
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
-
-
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
 #: Cycles' and the LMDP's path length: far beyond what the Cornell box's albedos let through.
 BOUNCES = 64
 #: Camera distance from the state point (m) and the width of its view (m).
@@ -36,14 +31,19 @@ CAMERA_DISTANCE = 0.03
 VIEW_WIDTH = 0.01
 
 
-def render_radiance(scene, point, direction, samples, seed=1):
+@pytest.fixture
+def demo(lmdp_ext):
+    return lmdp_ext.sub("operators.adapters.demo_scenes")
+
+
+def render_radiance(scene, fingerprint, point, direction, samples, seed=1):
     """Cycles' mean radiance (3,) over a VIEW_WIDTH-wide orthographic view of ``point`` from
-    ``direction`` (unit, pointing away from the surface), cached in out/test_cache."""
+    ``direction`` (unit, pointing away from the surface), cached in out/test_cache under a key
+    that holds the captured scene's ``fingerprint`` (``checks.scene_fingerprint``)."""
     point, direction = np.asarray(point, float), np.asarray(direction, float)
     c = scene.cycles
-    key = "|".join(map(str, (np.round(point, 6).tolist(), np.round(direction, 6).tolist(), samples, seed, BOUNCES,
-                             c.blur_glossy, [(o.name, tuple(o.matrix_world.translation)) for o in scene.objects],
-                             [m.name for m in bpy.data.materials], bpy.app.version_string, "radiance")))
+    key = "|".join(map(str, (fingerprint, np.round(point, 6).tolist(), np.round(direction, 6).tolist(), samples,
+                             seed, BOUNCES, c.blur_glossy, bpy.app.version_string, "radiance")))
     path = os.path.join(CACHE, "radiance_" + hashlib.sha1(key.encode()).hexdigest()[:20] + ".npy")
     if os.path.exists(path):
         return np.load(path)
@@ -58,7 +58,8 @@ def render_radiance(scene, point, direction, samples, seed=1):
     scene.collection.objects.link(cam)
     saved = (scene.camera, scene.render.resolution_x, scene.render.resolution_y, scene.render.filepath,
              scene.render.image_settings.file_format)
-    out = os.path.join(tempfile.mkdtemp(), "probe.exr")
+    folder = tempfile.TemporaryDirectory()
+    out = os.path.join(folder.name, "probe.exr")
     try:
         scene.camera = cam
         scene.render.resolution_x = scene.render.resolution_y = 4
@@ -79,6 +80,7 @@ def render_radiance(scene, point, direction, samples, seed=1):
             scene.render.image_settings.file_format = saved
         bpy.data.objects.remove(cam)
         bpy.data.cameras.remove(data)
+        folder.cleanup()
     value = px.reshape(-1, 4)[:, :3].mean(axis=0).astype(np.float64)
     os.makedirs(CACHE, exist_ok=True)
     np.save(path, value)
@@ -133,6 +135,7 @@ def directional_errors(lmdp_ext, receiver, label, points=2048, rays=16, count=3,
                                    light_samples=light_samples, strata_u=strata, strata_v=strata)
     extract = lmdp_ext.sub("operators.adapters.extract")
     arrays = extract.extract_scene(bpy.context, list(bpy.context.selected_objects))
+    fingerprint = lmdp_ext.sub("lmdp_addon.bake.checks").scene_fingerprint(arrays)
     states, _ = lmdp_ext.sub("lmdp_addon.model.pipeline").run_sample(arrays, settings)
     assert states.unknowns.n_glossy > 0 and states.n_unknowns > states.n_points
     _, _, solution = solve(lmdp_ext, arrays, states, settings)
@@ -142,7 +145,7 @@ def directional_errors(lmdp_ext, receiver, label, points=2048, rays=16, count=3,
     u = states.unknowns
     new, old, ref = [], [], []
     for p, k, direction in views:
-        ref.append(render_radiance(scene, states.points[p], direction, 512) @ LUMINANCE)
+        ref.append(render_radiance(scene, fingerprint, states.points[p], direction, 512) @ LUMINANCE)
         new.append(solution.z[u.first[p] + k] @ LUMINANCE)
         old.append(old_solution.z[p] @ LUMINANCE)
     new, old, ref = map(np.asarray, (new, old, ref))
