@@ -33,7 +33,7 @@ class UnknownMap:
         self.strata_u, self.strata_v = int(strata_u), int(strata_v)
         self.n_strata = self.strata_u * self.strata_v
         self.count = np.where(self.glossy, self.n_strata, 1).astype(np.int64)
-        self.first = np.concatenate([[0], np.cumsum(self.count)[:-1]]).astype(np.int64)
+        self.first = (np.cumsum(self.count) - self.count).astype(np.int64)
         self.n_unknowns = int(self.count.sum())
         self.point = np.repeat(np.arange(len(self.glossy), dtype=np.int64), self.count)
         self.stratum = np.where(self.glossy[self.point], np.arange(self.n_unknowns) - self.first[self.point], -1)
@@ -106,7 +106,7 @@ class UnknownMap:
     def point_max(self, values):
         """(m,) the largest of each point's unknowns' ``values (N,)`` (e.g. residuals)."""
         values = np.asarray(values, dtype=np.float64).reshape(-1)
-        if self.identity:
+        if self.identity or len(values) == 0:
             return values
         return np.maximum.reduceat(values, self.first)
 
