@@ -7,7 +7,8 @@ microfacet lobe, ``SceneArrays.materials``) the row depends on the outgoing dire
 keeps S unknowns z(x, k), the outgoing radiance of x towards the centre of its stratum k
 (PHYSICAL mode). :class:`UnknownMap` is the index map every consumer uses: unknowns are ordered
 by point, a glossy point's S unknowns adjacent in stratum order. A scene without glossy points
-has exactly one unknown per point, index = point.
+has exactly one unknown per point, index = point; so has a grid of one stratum, where a glossy
+point keeps the hemispherical albedo of its BSDF (``bsdf.lambertian_albedo``).
 """
 import functools
 
@@ -19,7 +20,7 @@ from .hemisphere import stratum_of_local_direction
 class UnknownMap:
     """Point -> unknowns of the LMDP.
 
-    glossy          (m,) bool: the point carries S directional unknowns
+    glossy          (m,) bool: the point carries S directional unknowns (none when S = 1)
     strata_u, strata_v  the Shirley–Chiu grid of the strata (``StateSpace``); S = strata_u * strata_v
     first           (m,) int64 index of each point's first unknown
     count           (m,) int64 1 (Lambertian) or S (glossy)
@@ -29,9 +30,10 @@ class UnknownMap:
     """
 
     def __init__(self, glossy, strata_u, strata_v):
-        self.glossy = np.asarray(glossy, dtype=bool).reshape(-1)
         self.strata_u, self.strata_v = int(strata_u), int(strata_v)
         self.n_strata = self.strata_u * self.strata_v
+        # one stratum resolves no direction: glossy points then keep one (Lambertian) unknown
+        self.glossy = np.asarray(glossy, dtype=bool).reshape(-1) & (self.n_strata > 1)
         self.count = np.where(self.glossy, self.n_strata, 1).astype(np.int64)
         self.first = (np.cumsum(self.count) - self.count).astype(np.int64)
         self.n_unknowns = int(self.count.sum())

@@ -58,6 +58,9 @@ def test_unknown_map_indexes_points_and_strata():
     np.testing.assert_allclose(np.exp(u.point_log_values(np.log(values + 1), w))[:, 0],
                                u.point_values(values + 1, w)[:, 0])
     np.testing.assert_array_equal(u.point_max(values[:, 0]), [0, 4, 5, 9])
+    # one stratum resolves no direction: glossy points keep one unknown; no points, no unknowns
+    assert UnknownMap(np.array([True, False]), 1, 1).identity
+    assert UnknownMap(np.zeros(0, bool), 4, 4).n_unknowns == 0
 
 
 def test_lambertian_scenes_keep_one_unknown_per_point():
