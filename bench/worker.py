@@ -69,7 +69,8 @@ def build(args):
     states = states_mod.sample_states(scene, args.points, args.strata_u, args.strata_v, seed=args.seed)
     sample_seconds = time.perf_counter() - t
     S = states.n_strata
-    estimate = dynamics.estimate_build_bytes(states.n_points, S, args.rays, args.light_samples, scene.n_triangles)
+    estimate = dynamics.estimate_build_bytes(states.n_points, S, args.rays, args.light_samples, scene.n_triangles,
+                                             states.unknowns.n_glossy)
     print(f"[worker] {states.n_points} points x {S} strata = {states.n_states} states; "
           f"estimated build memory {estimate / 1024 ** 2:.1f} MiB (dynamics.estimate_build_bytes)",
           file=sys.stderr, flush=True)

@@ -179,7 +179,9 @@ def check_bake(scene, names, settings, lmdp=None, will_solve=False, rasterise=Tr
     warnings = _check_solution(scene, names, settings, lmdp, will_solve)
     if settings.bake_mode in ("GUIDED", "FINAL_GATHER") and scene.has_glossy():
         warnings.append("Glossy surfaces (Principled specular / metallic, Glossy BSDF): the LMDP solution "
-                        "treats them as Lambertian surfaces of their BSDF's hemispherical albedo; "
+                        "gives each glossy point one unknown per outgoing stratum, so what they reflect "
+                        "is resolved to a stratum of the hemisphere (Strata U x V), and without Filter "
+                        "Glossy or the glossy bounce limit; "
                         + ("Final Gather continues paths that hit them and reads the solution only at "
                            "diffuse hits (its bias grows with what glossy surfaces reflect there)"
                            if settings.bake_mode == "FINAL_GATHER" else

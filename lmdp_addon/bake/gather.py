@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import world as world_light
-from ..bsdf import lambertian_albedo, lambertian_albedo_at
+from ..bsdf import GlossyRows, VertexBSDF, lambertian_albedo, lambertian_albedo_at
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import cosine_directions
@@ -150,7 +150,8 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         b(x) = ∫ ρ(h) D_e(h) cos θ / π dω,     h the surface that x sees in direction ω,
 
     estimated with ``rays_per_point`` cosine-distributed rays per point (a jittered square
-    grid through the concentric map) and one light sample at each hit (``D_e`` by
+    grid through the concentric map) and one light sample at each hit (on a glossy hit its
+    BSDF's ``f cos`` towards x replaces ``ρ(h) cos θ / π``) (``D_e`` by
     :meth:`~lmdp_addon.lights.EmitterSampler.direct_light` and the lamps'
     :meth:`~lmdp_addon.lamps.Lamps.direct_light`, as the tracer samples it; plus the world's by
     :func:`~lmdp_addon.world.next_event` when the scene has an environment map). Rays that
@@ -182,6 +183,7 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
     lifted = caster.lift(states.points, states.normals, states.point_triangle)
     smooth = scene.has_smooth_normals() and states.shading_normals is not None
     shading = states.bsdf_normals
+    glossy = scene.glossy_triangles() if scene.has_glossy() else None
     per_chunk = max(1, GATHER_RAY_BUDGET // R)
     for start in range(0, len(live), per_chunk):
         ids = live[start:start + per_chunk]
@@ -209,27 +211,42 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         pos = tc[:, 0] + bu[hit, None] * (tc[:, 1] - tc[:, 0]) + bv[hit, None] * (tc[:, 2] - tc[:, 0])
         if smooth:
             ns = scene.shading_normals(t, bu[hit], bv[hit])        # the front was hit (keep)
-            direct = lights.direct_light(pos, ns, rng, caster, lift=caster.offset(t), geometric=ng)[0]
-            if not scene.lamps.empty:
-                direct = direct + scene.lamps.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
-                                                           geometric=ng, transparency=lights.transparency)[0]
         else:
             ns = ng
-            direct = lights.direct_light(pos, ng, rng, caster, lift=caster.offset(t))[0]
-            if not scene.lamps.empty:
-                direct = direct + scene.lamps.direct_light(pos, ng, rng, caster, lift=caster.offset(t),
-                                                           transparency=lights.transparency)[0]
+        # glossy hits reflect the direct light towards x through their BSDF (f cos for -ω)
+        bsdf = _glossy_hits(scene, glossy, t, bu[hit], bv[hit], ns, ng, -d[hit]) if glossy is not None else None
+        geometric = ng if smooth else None
+        direct = lights.next_event(pos.astype(np.float32), ns.astype(np.float32), rng, caster, mis=False,
+                                   lift=caster.offset(t), geometric=geometric, bsdf=bsdf)[0]
+        if not scene.lamps.empty:
+            direct = direct + scene.lamps.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
+                                                       geometric=geometric, transparency=lights.transparency,
+                                                       bsdf=bsdf)[0]
         if environment is not None:    # the world's direct light at the hit, by world sampling
             direct = direct + world_light.next_event(
                 environment, pos.astype(np.float32), ns.astype(np.float32), rng, caster,
                 caster.offset(t).astype(np.float32), geometric=ng.astype(np.float32) if smooth else None,
-                mis=False, transparency=lights.transparency)[0]
+                mis=False, transparency=lights.transparency, bsdf=bsdf)[0]
         value = lambertian_albedo_at(scene, t, bu[hit], bv[hit]) * direct
+        if bsdf is not None:   # their light is f cos-weighted already
+            value[bsdf.mask] = direct[bsdf.mask]
         if tint is not None:
             value = value * tint[hit]
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R
+
+
+def _glossy_hits(scene, glossy, tri, bu, bv, shading, geometric, towards):
+    """:class:`~lmdp_addon.bsdf.GlossyRows` of the hits on glossy triangles (their BSDF set up for
+    the direction ``towards`` the point that cast the ray, with the diffuse colour at the hit), or
+    None when no hit is glossy."""
+    g = np.flatnonzero(glossy[tri])
+    if len(g) == 0:
+        return None
+    vertex = VertexBSDF(scene.materials, scene.triangle_material[tri[g]], scene.albedo_at(tri[g], bu[g], bv[g]),
+                        shading[g], towards[g], geometric=geometric[g])
+    return GlossyRows(len(tri), g, vertex)
 
 
 def _environment(scene):
@@ -252,6 +269,13 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
     beside the light (which hardly sees it) would read their z; b evaluates it where the rays
     land.
 
+    The recursion runs over the LMDP's unknowns. A glossy unknown (x, k) takes as its source
+    ``w + P_kN (q ⊙ D)``, D the direct light of the unknowns it lands on as the LMDP holds it
+    (their emitter and lamp columns, ``P_NT z_T``): its BSDF rays are the build's, not those of
+    :func:`direct_after_one_bounce`, which samples a cosine lobe. The field holds one ẑ per
+    point, a glossy point's the cosine-weighted mean of its directions' (the tracer path-traces
+    on from glossy hits).
+
     With ``max_bounces`` = N the recursion runs from ẑ = w for N - 1 steps: the gather point is
     the path's first vertex, so the light it reads has at most N - 1 more vertices, as the
     tracer's and Cycles' paths of N bounces (the converged ẑ would add the light of every
@@ -273,13 +297,31 @@ def build_gather(guide, lmdp, max_bounces=None, seed=0):
         w = np.zeros_like(w)
     z_hat = w.copy()
     steps = 100_000 if max_bounces is None else int(max_bounces) - 1
+    unknowns = lmdp.dynamics.unknown_map
     if steps > 0:
-        source = direct_after_one_bounce(lmdp, gather_rays_per_point(lmdp.states.n_points), seed) + w
+        b = direct_after_one_bounce(lmdp, gather_rays_per_point(lmdp.states.n_points), seed)
+        source = b[unknowns.point] + w
+        glossy = np.flatnonzero(unknowns.stratum >= 0)
+        if len(glossy):
+            direct = _direct_columns(lmdp.dynamics, _environment(lmdp.scene) is not None)
+            D = np.asarray(problem.P[:, direct] @ problem.z_terminal[direct - problem.n_points], dtype=np.float64)
+            source[glossy] = w[glossy] + np.asarray(P_NN[glossy] @ (q * D))
         for _ in range(steps):
             new = source + np.asarray(P_NN @ (q * z_hat))
             converged = np.max(np.abs(new - z_hat)) <= 1e-12 * max(np.max(np.abs(new)), 1e-300)
             z_hat = new
             if converged:
                 break
-    return GatherField(locator=guide.locator, irradiance=np.maximum(z_hat, 0.0), same_scene=guide.same_scene,
+    irradiance = unknowns.point_values(np.maximum(z_hat, 0.0), lmdp.states.stratum_weight)
+    return GatherField(locator=guide.locator, irradiance=irradiance, same_scene=guide.same_scene,
                        object_map=guide.object_map)
+
+
+def _direct_columns(dynamics, world):
+    """Columns of P whose terminals the tracer samples as direct light at a gather point: the
+    emitters and the lamps, and the world's with an environment map (``world``)."""
+    N, E = dynamics.n_unknowns, dynamics.n_emitters
+    cols = [np.arange(N, N + E), N + E + dynamics.n_world + 1 + np.arange(dynamics.n_lamps)]
+    if world:
+        cols.append(dynamics.world_columns)
+    return np.concatenate(cols).astype(np.int64)

@@ -13,6 +13,10 @@ This module computes everything that is geometry, vectorised over arrows:
   :func:`even_subset`;
 * the arrows: :func:`stratum_arrows`, and for the probe, :func:`nearest_state` and
   :func:`next_state_targets` (the thesis's Figure 5: u*(x'|x) over the next states x');
+* glossy points (one unknown per outgoing stratum): :func:`directional_policy` shows the u* of
+  the unknown looking straight down on them (:func:`probe_unknowns`), its next states binned by
+  the stratum of their direction (:func:`glossy_stratum_policy`; emitters at their centroids,
+  lamps at their centres, the world and the void left out);
 * their shapes: :func:`arrow_lines` (line segments for the viewport's GPU batch),
   :func:`arrow_mesh` (closed triangle meshes that render in Cycles / EEVEE) and
   :func:`marker_mesh` (octahedra at next states).
@@ -23,9 +27,11 @@ Arrays: ``points (m, 3)`` world metres, ``frames (m, 3, 3)`` rows t, b, n
 from dataclasses import dataclass, fields
 
 import numpy as np
+import scipy.sparse as sp
 
 from .colormap import colormap_linear
-from ..model.hemisphere import stratum_centers, tangent_frame
+from ..lamps import SUN
+from ..model.hemisphere import stratum_centers, stratum_of_local_direction, tangent_frame
 
 
 @dataclass
@@ -191,11 +197,13 @@ def nearest_state(points, normals, location, candidates=None, side_tolerance=1e-
     return int(idx[np.argmin(dist2)])
 
 
-def next_state_targets(policy_row_indices, policy_row_values, n_points, count=None):
+def next_state_targets(policy_row_indices, policy_row_values, n_points, count=None, point_of=None):
     """The next states x' of one state's u*(x'|x) that are surface points, largest first.
 
     ``policy_row_*``: the CSR row of :func:`lmdp_addon.model.policy.optimal_policy` (column indices and
-    probabilities; columns >= n_points are terminals). Returns ``(points (K,), probability (K,),
+    probabilities; columns >= n_points are terminals, ``n_points`` then counting the unknowns).
+    ``point_of (N,)``: the point of each unknown (``UnknownMap.point``) where glossy points carry
+    several; their probabilities are summed per point. Returns ``(points (K,), probability (K,),
     terminal_probability)``: the surface next states (at most ``count``), and the total
     probability of the terminal states (lights, world, void) which have no position.
     """
@@ -204,6 +212,9 @@ def next_state_targets(policy_row_indices, policy_row_values, n_points, count=No
     surface = (cols < n_points) & (vals > 0)
     terminal = float(vals[cols >= n_points].sum())
     cols, vals = cols[surface], vals[surface]
+    if point_of is not None:
+        cols, inverse = np.unique(np.asarray(point_of)[cols], return_inverse=True)
+        vals = np.bincount(inverse.reshape(-1), weights=vals, minlength=len(cols))
     order = np.argsort(-vals, kind="stable")
     if count is not None:
         order = order[:int(count)]
@@ -467,6 +478,84 @@ def policy_view(states, u, subset, max_points, scale, candidates, min_probabilit
     return PolicyView(arrows=arrows, subset=subset, points=points, probe=probe)
 
 
+def terminal_positions(scene, dynamics):
+    """(nT, 3) where each terminal of ``dynamics`` lies: an emitter's area-weighted centroid, a
+    point / spot / area lamp's centre; NaN for the world, the void and suns (no position)."""
+    out = np.full((dynamics.n_terminals, 3), np.nan)
+    E = dynamics.n_emitters
+    if E:
+        tri_emitter = scene.emitter_groups()[0]
+        corners = scene.corners()
+        areas = scene.triangle_geometry()[1]
+        on = np.flatnonzero(tri_emitter >= 0)
+        w = areas[on]
+        c = corners[on].mean(axis=1)
+        total = np.bincount(tri_emitter[on], weights=w, minlength=E)
+        for i in range(3):
+            out[:E, i] = np.bincount(tri_emitter[on], weights=w * c[:, i], minlength=E) / np.maximum(total, 1e-300)
+    lamps = getattr(scene, "lamps", None)
+    if dynamics.n_lamps and lamps is not None and lamps.position is not None:
+        first = E + dynamics.n_world + 1
+        position = np.asarray(lamps.position, dtype=np.float64).reshape(-1, 3)
+        sun = np.asarray(lamps.kind) == SUN
+        out[first:first + len(position)] = np.where(sun[:, None], np.nan, position)
+    return out
+
+
+def glossy_stratum_policy(states, policy, points, targets):
+    """u*(k_in | x, k) (len(points), S) of the glossy points ``points`` for the unknown the
+    probe shows (:func:`probe_unknown`): the optimal policy's next states binned by the stratum
+    of the direction from x to them (``targets (N + nT, 3)``: the unknowns' points and the
+    terminals' positions, :func:`terminal_positions`; columns without a position, the world and
+    the void, left out). The unknowns' own next states, rather than the cosine stratum rows the
+    guide reads (``policy.stratum_policy``)."""
+    points = np.asarray(points, dtype=np.int64)
+    S = states.n_strata
+    rows = sp.csr_matrix(policy)[probe_unknowns(states, points)].tocoo()
+    x = points[rows.row]
+    d = targets[rows.col] - states.points[x]
+    ok = np.flatnonzero(np.all(np.isfinite(d), axis=1) & (rows.data > 0))
+    local = np.einsum("kij,kj->ki", states.frames[x[ok]], d[ok])
+    k = stratum_of_local_direction(local, states.strata_u, states.strata_v)
+    up = k >= 0
+    out = np.bincount(rows.row[ok][up] * S + k[up], weights=rows.data[ok][up],
+                      minlength=len(points) * S).reshape(len(points), S)
+    sums = out.sum(axis=1, keepdims=True)
+    return np.where(sums > 0, out / np.where(sums > 0, sums, 1.0), 0.0)
+
+
+def directional_policy(scene, states, dynamics, u, policy, points=None):
+    """``u (m, S)`` (``policy.stratum_policy``) with the rows of glossy points (among ``points``,
+    default all) replaced by :func:`glossy_stratum_policy` of their shown unknown, so that the
+    arrows of a glossy point show where the optimal policy of that direction goes."""
+    unknowns = states.unknowns
+    if unknowns.identity:
+        return u
+    points = np.arange(states.n_points) if points is None else np.asarray(points, dtype=np.int64)
+    g = points[unknowns.glossy[points]]
+    if len(g) == 0:
+        return u
+    targets = np.vstack([states.points[unknowns.point], terminal_positions(scene, dynamics)])
+    out = np.array(u, dtype=np.float64)
+    out[g] = glossy_stratum_policy(states, policy, g, targets)
+    return out
+
+
+def probe_unknowns(states, points):
+    """(k,) the unknown the policy display shows for each of ``points``: its only one, or on a
+    glossy point the one of the outgoing stratum whose centre is nearest the normal (u*(x'|x, k)
+    of the view straight down on it)."""
+    unknowns = states.unknowns
+    points = np.asarray(points, dtype=np.int64)
+    k = int(np.argmax(stratum_centers(states.strata_u, states.strata_v)[:, 2]))
+    return unknowns.first[points] + np.where(unknowns.glossy[points], k, 0)
+
+
+def probe_unknown(states, point):
+    """:func:`probe_unknowns` of one point (an int)."""
+    return int(probe_unknowns(states, [point])[0])
+
+
 def probe(states, u, policy_row, location, scale, next_states=24, candidates=None, longest=False):
     """:class:`Probe` of the state nearest to ``location`` (:func:`nearest_state`).
 
@@ -475,6 +564,8 @@ def probe(states, u, policy_row, location, scale, next_states=24, candidates=Non
     Every stratum arrow is drawn (the whole distribution, as in Figure 5), with length
     ``scale x u*(k|x)``; with ``longest=True`` the most probable stratum's arrow is ``scale``
     long instead (a single state's distribution is easier to read at a fixed size).
+    ``policy_row(i)`` takes the point's unknown (:func:`probe_unknown`: on a glossy point the
+    one of its outgoing stratum nearest the normal), whose next states are summed per point.
     """
     i = nearest_state(states.points, states.normals, location, candidates)
     if i < 0:
@@ -484,8 +575,10 @@ def probe(states, u, policy_row, location, scale, next_states=24, candidates=Non
     arrows = stratum_arrows(states.points[i:i + 1], states.frames[i:i + 1], u[i:i + 1], states.strata_u,
                             states.strata_v, scale, 0.0, lift=0.01 * float(scale))
     arrows.point[:] = i
-    cols, vals = policy_row(i)
-    targets, probability, terminal = next_state_targets(cols, vals, states.n_points, next_states)
+    cols, vals = policy_row(probe_unknown(states, i))
+    unknowns = states.unknowns
+    targets, probability, terminal = next_state_targets(
+        cols, vals, unknowns.n_unknowns, next_states, None if unknowns.identity else unknowns.point)
     return Probe(state=i, location=np.asarray(location, dtype=np.float64).reshape(3), arrows=arrows,
                  targets=targets, target_probability=probability, terminal_probability=terminal,
                  target_points=states.points[targets] + 0.01 * float(scale) * states.normals[targets])

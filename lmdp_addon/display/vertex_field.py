@@ -210,8 +210,13 @@ class StateQuantity:
         return self.quantity in ("Z", "RESIDUAL")
 
 
-def state_quantity(solution, quantity="Z", residuals=None):
-    """The :class:`StateQuantity` of ``solution`` for ``quantity``.
+def state_quantity(solution, quantity="Z", residuals=None, states=None):
+    """The :class:`StateQuantity` of ``solution`` for ``quantity``, one value per state point.
+
+    ``states``: the :class:`~lmdp_addon.model.states.StateSpace` of the solution; where glossy
+    points carry directional unknowns a glossy point shows the cosine-weighted mean of its
+    directions' z, Σ_k w_k z(x, k) (its radiosity-equivalent B/π, what a Lambertian point's z
+    is), and the largest residual of its unknowns. Without glossy points it changes nothing.
 
     Z: desirability (PHYSICAL: outgoing radiance; its Rec.709 luminance is the scalar z), log
     scale over the 1st-99th percentile of the states. COST_TO_GO: J = -(ln z)/λ of the scalar z
@@ -224,12 +229,18 @@ def state_quantity(solution, quantity="Z", residuals=None):
     if quantity not in QUANTITIES:
         raise ValueError(f"quantity must be one of {', '.join(QUANTITIES)}, not {quantity!r}")
     physical = solution.cost_mode == "PHYSICAL"
-    log_z = np.asarray(solution.log_z, dtype=np.float64)  # (m, C), exact where z underflows
+    log_z = np.asarray(solution.log_z, dtype=np.float64)  # (N, C), exact where z underflows
+    unknowns = None if states is None or states.unknowns.identity else states.unknowns
+    if unknowns is not None:
+        log_z = unknowns.point_log_values(log_z, states.stratum_weight)        # (m, C)
+        if residuals is not None:
+            residuals = unknowns.point_max(residuals)
     if log_z.shape[1] == 1:
         ln_scalar = log_z[:, 0]
         z_rgb = None
     else:
-        z_rgb = np.asarray(solution.z, dtype=np.float64)
+        z_rgb = (np.asarray(solution.z, dtype=np.float64) if unknowns is None
+                 else unknowns.point_values(solution.z, states.stratum_weight))
         with np.errstate(divide="ignore"):
             ln_scalar = np.log(scalar_desirability(z_rgb))
     log10_z = ln_scalar / np.log(10.0)

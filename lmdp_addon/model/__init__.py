@@ -2,6 +2,8 @@
 
 * ``hemisphere``: equal-area hemisphere warps and strata (Figure 2);
 * ``states``: the state space, surface points with stratified hemispheres (3.1.1);
+* ``unknowns``: the solve's unknowns, one per Lambertian point and one per (point, outgoing
+  stratum) on glossy points;
 * ``dynamics``: the passive dynamics by ray casting (3.1.2, eq. 3.1), built from
   ``patterns`` (the stratum and next-event ray patterns), ``hits`` (hit classification: which
   next state a ray lands in) and ``locator`` (the nearest state point of a hit; buried points);

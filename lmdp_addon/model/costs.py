@@ -12,7 +12,9 @@ with z_T fixed. Two cost modes build Q, P and z_T (see ``design.md``):
                 environment map its luminance relative to the brightest bin), 0 on the void;
                 λ = thesis default (sum of the lights' power per unit area) x ``lambda_scale``.
 * ``PHYSICAL``: P = cosine-weighted form factors; Q = diag(albedo) per RGB channel (g = -log
-                albedo, λ = 1); z_T = emitted radiance (a lamp's ``Lamps.emission``, which its
+                albedo, λ = 1; a glossy unknown (x, k) takes its directional albedo a_k, the
+                BSDF's ∫ f(ω_i, ω_k) cos θ_i dω_i, and P its BSDF rows normalised to one,
+                ``dynamics.py``); z_T = emitted radiance (a lamp's ``Lamps.emission``, which its
                 light samples' mass turns into its direct light, see ``lamps.py``). Then the
                 equation above *is* the discretised light transport equation (eq. 2.7): z_N is
                 the outgoing radiance.
@@ -87,7 +89,7 @@ def build_first_exit_lmdp(dynamics, states, cost_mode="PHYSICAL", lambda_=None, 
     """
     if cost_mode not in COST_MODES:
         raise SceneError(f"Unknown cost mode {cost_mode!r}: use one of {', '.join(COST_MODES)}")
-    m = dynamics.n_points
+    m = dynamics.n_unknowns
     E = dynamics.n_emitters
     P = sp.csr_matrix(dynamics.P, dtype=np.float64)
     if cost_mode == "THESIS":
@@ -108,7 +110,7 @@ def build_first_exit_lmdp(dynamics, states, cost_mode="PHYSICAL", lambda_=None, 
         lam = float(lambda_)
     else:
         eps = 0.0
-        albedo = np.clip(np.asarray(states.point_albedo, dtype=np.float64), 0.0, 1.0)
+        albedo = np.clip(unknown_albedo(dynamics, states), 0.0, 1.0)
         q = albedo
         with np.errstate(divide="ignore"):
             g = -np.log(albedo)
@@ -118,6 +120,18 @@ def build_first_exit_lmdp(dynamics, states, cost_mode="PHYSICAL", lambda_=None, 
         lam = 1.0
     return FirstExitLMDP(P=sp.csr_matrix(P), q=q, z_terminal=z_terminal, lambda_=lam,
                          cost_mode=cost_mode, g=g, epsilon=eps)
+
+
+def unknown_albedo(dynamics, states):
+    """(N, 3) the albedo of every unknown: a Lambertian point's ``point_albedo``, a glossy
+    unknown's directional albedo a_k (``PassiveDynamics.glossy_albedo``)."""
+    albedo = np.asarray(states.point_albedo, dtype=np.float64)
+    u = dynamics.unknown_map
+    if u.identity:
+        return albedo
+    out = albedo[u.point].copy()
+    out[u.stratum >= 0] = dynamics.glossy_albedo
+    return out
 
 
 def scalar_desirability(values):

@@ -1,10 +1,11 @@
 """Export an LMDP and its solution to a self-describing ``.npz`` (numpy only to reload).
 
-States are the m point-level states (``state_stratum = -1``: the Lambertian reduction) followed
-by the terminal states (emitters, world, void). With ``P = csr_matrix((P_data, P_indices,
+States are the N unknowns (``state_point``; ``state_stratum = -1`` on a Lambertian point, its
+one unknown; 0..S-1 the outgoing strata of a glossy point's, ``point_first_unknown`` /
+``point_unknowns`` the index map) followed by the terminal states (emitters, world, void). With ``P = csr_matrix((P_data, P_indices,
 P_indptr), shape=P_shape)`` every equation can be checked from the file alone:
 
-* first exit (eq. 2.22): ``z[:m] == q[:m] * (P @ z)`` (per channel), terminal rows fixed;
+* first exit (eq. 2.22): ``z[:N] == q[:N] * (P @ z)`` (per channel), terminal rows fixed;
 * in the log domain, where z underflows: ``log_z[i] == log_q[i] + logsumexp_j(log P_ij + log_z[j])``;
 * optimal policy (eq. 2.23): ``u*(j|i) = P_ij z_j / Σ_j P_ij z_j`` (``u_star_*`` arrays);
 * cost-to-go: ``J = -log_z / lambda_``.
@@ -27,7 +28,8 @@ def export_npz(path, states, dynamics, lmdp, solution, extra=None):
     """Write every array of the problem and its solution to ``path`` (see module docstring;
     ``.npz`` is appended when missing); returns the path written. Raises ``LMDPError`` with the
     reason when the file cannot be written (nothing is left behind)."""
-    m = dynamics.n_points
+    unknowns = states.unknowns
+    m = unknowns.n_unknowns
     nT = dynamics.n_terminals
     C = lmdp.n_channels
     P = sp.csr_matrix(lmdp.P)
@@ -45,8 +47,9 @@ def export_npz(path, states, dynamics, lmdp, solution, extra=None):
         point_albedo=states.point_albedo,
         point_area=states.point_area,
         point_object=states.point_object,
-        state_point=np.concatenate([np.arange(m), np.full(nT, -1)]),
-        state_stratum=np.full(m + nT, -1),
+        state_point=np.concatenate([unknowns.point, np.full(nT, -1)]),
+        state_stratum=np.concatenate([unknowns.stratum, np.full(nT, -1)]),
+        point_first_unknown=unknowns.first, point_unknowns=unknowns.count,
         terminal=np.concatenate([np.zeros(m, bool), np.ones(nT, bool)]),
         terminal_labels=np.array(dynamics.terminal_labels()),
         strata_u=states.strata_u,

@@ -14,6 +14,8 @@ main thread and pass ``check=False`` to the worker).
 """
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from .costs import build_first_exit_lmdp, thesis_lambda
 from .dynamics import build_passive_dynamics, check_budget
 from ..errors import StageOrderError
@@ -73,14 +75,30 @@ def check_build(scene, settings, states=None):
     memory than ``settings.memory_budget_gb``; returns the estimate in bytes.
 
     Counts ``states.n_points`` x ``states.n_strata`` when the states are given, else
-    ``settings.point_count`` x ``settings.strata_count`` (what :func:`run_sample` will sample).
+    ``settings.point_count`` x ``settings.strata_count`` (what :func:`run_sample` will sample),
+    and the glossy points' directional unknowns (their BSDF rays and light samples).
     """
     if states is not None:
         n_points, n_strata = states.n_points, states.n_strata
+        n_glossy = states.unknowns.n_glossy
     else:
         n_points, n_strata = settings.point_count, settings.strata_count
+        n_glossy = glossy_point_estimate(scene, n_points)
     return check_budget(n_points, n_strata, settings.rays_per_stratum, settings.memory_budget_gb,
-                        settings.light_samples, scene.n_triangles)
+                        settings.light_samples, scene.n_triangles, n_glossy)
+
+
+def glossy_point_estimate(scene, point_count):
+    """How many of ``point_count`` points :func:`run_sample` puts on glossy triangles (their
+    share of the state-carrying area, rounded up): they carry S unknowns each."""
+    if not scene.has_glossy():
+        return 0
+    with scene.held():
+        areas = scene.triangle_geometry()[1]
+        carriers = scene.state_triangles()
+        total = areas[carriers].sum()
+        glossy = areas[carriers & scene.glossy_triangles()].sum()
+    return int(np.ceil(point_count * glossy / total)) if total > 0 else 0
 
 
 def run_sample(scene, settings, progress=None):

@@ -21,13 +21,14 @@ def _column_weights(solution):
     return values, delta
 
 
-def _scaled_entries(matrix, row_point, solution):
-    """``p_ij z_j`` of a CSR matrix rescaled per row by ``exp(δ_i - c̄)`` (finite, exact ratios)."""
+def _scaled_entries(matrix, row_unknown, solution, row_delta=None):
+    """``p_ij z_j`` of a CSR matrix rescaled per row by ``exp(δ_i - c̄)`` (finite, exact ratios);
+    ``row_unknown``: the unknown whose δ scales each row, or ``row_delta`` the scale itself."""
     matrix = sp.csr_matrix(matrix)
     values, col_delta = _column_weights(solution)
     rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
     cols = matrix.indices
-    row_delta = solution.delta[row_point[rows]]
+    row_delta = solution.delta[row_unknown[rows]] if row_delta is None else row_delta[rows]
     with np.errstate(invalid="ignore", over="ignore"):
         expo = np.where(np.isfinite(row_delta) & np.isfinite(col_delta[cols]),
                         row_delta - solution.c_bar - col_delta[cols], -np.inf)
@@ -35,7 +36,8 @@ def _scaled_entries(matrix, row_point, solution):
 
 
 def optimal_policy(lmdp, solution):
-    """u*(x'|x) over next states as a CSR (m, m + nT) matrix whose rows sum to one (eq. 2.23).
+    """u*(x'|x) over next states as a CSR (N, N + nT) matrix whose rows sum to one (eq. 2.23),
+    one row per unknown (a glossy point's unknown (x, k): u*(x'|x, k) ∝ p(x'|x, k) z(x')).
 
     Uses the same P as the solve (with the ε self-loop in THESIS mode).
     """
@@ -64,20 +66,27 @@ def stratum_policy(dynamics, solution, columns="all"):
 
     The ε self-loop has no direction and is left out. Points whose selected weights are all
     zero fall back to the passive dynamics, ``w_k`` (BRDF·cos mass of each stratum).
+    On glossy points the rows are their cosine stratum rays (``stratum_transitions``): the
+    directions that lead to light under a Lambertian lobe, which the guide mixes with the BSDF.
     """
     Pk = sp.csr_matrix(dynamics.stratum_transitions)
     m, S = dynamics.n_points, dynamics.n_strata
+    N = dynamics.n_unknowns
     if columns == "points":
-        Pk = Pk[:, :m]
+        Pk = Pk[:, :N]
     elif columns == "points+world":
         keep = np.zeros(dynamics.n_columns, dtype=bool)
-        keep[:m] = True
+        keep[:N] = True
         keep[dynamics.world_columns] = True
         Pk = sp.csr_matrix(Pk.multiply(keep[None, :]))
     elif columns != "all":
         raise ValueError(f"columns must be 'all', 'points' or 'points+world', not {columns!r}")
-    row_point = np.repeat(np.arange(m), S)
-    rows, _, w = _scaled_entries(Pk, row_point, solution)
+    unknowns = dynamics.unknown_map
+    if unknowns.identity:
+        rows, _, w = _scaled_entries(Pk, np.repeat(np.arange(m), S), solution)
+    else:   # a glossy point's rows are scaled by the smallest δ of its unknowns
+        point_delta = np.minimum.reduceat(np.asarray(solution.delta, dtype=np.float64), unknowns.first)
+        rows, _, w = _scaled_entries(Pk, None, solution, row_delta=np.repeat(point_delta, S))
     per_stratum = np.bincount(rows, weights=w, minlength=m * S).reshape(m, S)
     sums = per_stratum.sum(axis=1, keepdims=True)
     lamps = getattr(dynamics, "n_lamps", 0)   # lamp masses are not probabilities (lamps.py)

@@ -33,13 +33,14 @@ DENSE_LU_MAX = 13000
 
 @dataclass
 class Solution:
-    """Desirability of the point-level states, stored rescaled.
+    """Desirability of the unknowns (``StateSpace.unknowns``: one per Lambertian point, S per
+    glossy point), stored rescaled.
 
-    y          (m, C) float64 rescaled desirability, ``z = y * exp(-delta)``
-    delta      (m,)   log scale of each state (+inf where no lit terminal is reachable)
+    y          (N, C) float64 rescaled desirability, ``z = y * exp(-delta)``
+    delta      (N,)   log scale of each unknown (+inf where no lit terminal is reachable)
     z_terminal (nT, C) desirability of the terminal states
     lambda_    λ; J = -(log z)/λ
-    reachable  (m,) bool: some lit terminal is reachable (otherwise z = 0, J = +inf)
+    reachable  (N,) bool: some lit terminal is reachable (otherwise z = 0, J = +inf)
     residual   relative residual ``||y - (A y + b)||_∞ / ||y||_∞`` of the rescaled system
     residual_z ``||z - Q P z||_∞`` over the non-terminal states, in z units
     history    ``||z_i - z_{i-1}||_2`` per power iteration (empty for DIRECT)

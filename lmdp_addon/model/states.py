@@ -1,9 +1,12 @@
 """State space (thesis 3.1.1): surface points proportional to area, each with a stratified hemisphere.
 
-A state is the pair (point, stratum). For the Lambertian BRDFs the extension supports, every
-stratum of a point has the same row of the passive dynamics (eq. 3.1 does not depend on the
-outgoing direction), so the transport solve carries one unknown per point; see ``design.md``.
+A state is the pair (point, stratum). On a Lambertian point every stratum has the same row of
+the passive dynamics (eq. 3.1 does not depend on the outgoing direction), so the transport solve
+carries one unknown per point; a glossy point (a material with a microfacet lobe) keeps one
+unknown per outgoing stratum (:mod:`~lmdp_addon.model.unknowns`, :attr:`StateSpace.unknowns`);
+see ``design.md``.
 """
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,6 +14,7 @@ import numpy as np
 from ..bsdf import lambertian_albedo_at
 from ..errors import SceneError
 from .hemisphere import stratum_cosine_weights, stratum_solid_angle, tangent_frame
+from .unknowns import UnknownMap
 
 from ..sampling import GOLDEN
 
@@ -34,6 +38,10 @@ class StateSpace:
                     normals, ``SceneArrays.shading_normals``), or None: equal to ``normals``
                     (flat scenes). The strata and their frames stay those of the geometric
                     normal; see :attr:`bsdf_normals`
+    glossy          (m,) bool: the point's material has a microfacet lobe (``bsdf.MaterialTable``),
+                    so it carries one unknown per outgoing stratum; None: no glossy point
+    point_bary      (m, 2) float64 barycentrics (b1, b2) of each point on its triangle (the
+                    glossy points' BSDF reads the diffuse colour there), or None
     """
 
     points: np.ndarray
@@ -49,6 +57,19 @@ class StateSpace:
     skipped_triangles: int = 0
     seed: int = 0
     shading_normals: np.ndarray = None
+    glossy: np.ndarray = None
+    point_bary: np.ndarray = None
+
+    @functools.cached_property
+    def unknowns(self):
+        """The :class:`~lmdp_addon.model.unknowns.UnknownMap` of the LMDP's unknowns."""
+        glossy = np.zeros(self.n_points, dtype=bool) if self.glossy is None else self.glossy
+        return UnknownMap(glossy, self.strata_u, self.strata_v)
+
+    @property
+    def n_unknowns(self):
+        """Unknowns of the solve: one per Lambertian point, S per glossy point."""
+        return self.unknowns.n_unknowns
 
     @property
     def bsdf_normals(self):
@@ -73,7 +94,10 @@ class StateSpace:
         return stratum_solid_angle(self.strata_u, self.strata_v)
 
     def summary(self):
+        glossy = self.unknowns.n_glossy
         return (f"{self.n_points} points x {self.n_strata} strata = {self.n_states} states"
+                + (f"; {glossy} glossy points carry {self.n_strata} directional unknowns each "
+                   f"({self.n_unknowns} unknowns)" if glossy else "")
                 + (f"; skipped {self.skipped_triangles} degenerate triangles" if self.skipped_triangles else ""))
 
 
@@ -122,6 +146,10 @@ def _sample(scene, point_count, strata_u, strata_v, seed):
     corners = scene.corners()[tri]
     points = np.einsum("mk,mkj->mj", bary, corners)
     point_normals = normals[tri]
+    glossy = None
+    if scene.has_glossy():
+        glossy = np.asarray(scene.glossy_triangles(), dtype=bool)[tri]
+        glossy = glossy if glossy.any() else None
     shading = None
     if scene.has_smooth_normals():
         shading = scene.shading_normals(tri, bary[:, 1], bary[:, 2]).astype(np.float64)
@@ -147,4 +175,6 @@ def _sample(scene, point_count, strata_u, strata_v, seed):
         skipped_triangles=skipped,
         seed=int(seed),
         shading_normals=shading,
+        glossy=glossy,
+        point_bary=bary[:, 1:].copy(),
     )

@@ -78,7 +78,7 @@ class LMDP_OT_show_desirability(EngineJob, bpy.types.Operator):
     def compute(self, inputs, settings, progress):
         states, solution = inputs["states"], inputs["solution"]
         residuals = state_residuals(inputs["lmdp"], solution) if inputs["quantity"] == "RESIDUAL" else None
-        sq = vertex_field.state_quantity(solution, inputs["quantity"], residuals)
+        sq = vertex_field.state_quantity(solution, inputs["quantity"], residuals, states)
         spacing = vertex_field.state_spacing(states.point_area)
         results = []
         targets = inputs["targets"]

@@ -6,7 +6,9 @@ a probe of one state's whole u* distribution (as in the thesis's Figure 5).
 * ``lmdp.probe_policy``: the whole u* distribution of the state nearest to the 3D cursor (or to
   a clicked surface point): arrows over its strata and markers at its likeliest next states.
 
-Both are ``jobs.EngineJob``s that write the session's ``policy`` stage (a ``PolicyView``).
+Both are ``jobs.EngineJob``s that write the session's ``policy`` stage (a ``PolicyView``). On a
+glossy point (one unknown per outgoing stratum) both show the u* of its unknown looking straight
+down on it (``arrows.directional_policy``).
 """
 import bpy
 import numpy as np
@@ -106,6 +108,7 @@ class LMDP_OT_show_policy(EngineJob, bpy.types.Operator):
         self._skipped = skipped_mesh_messages(meshes)
         previous = session.get("policy")
         return {"states": lmdp.states, "dynamics": lmdp.dynamics, "solution": solution, "candidates": candidates,
+                "scene": lmdp.scene, "lmdp": lmdp.lmdp,
                 "subset": props.policy_subset, "max_points": props.policy_max_points,
                 "scale": props.policy_arrow_scale, "probe": previous.probe if previous is not None else None,
                 "as_mesh": self.as_mesh}
@@ -113,6 +116,10 @@ class LMDP_OT_show_policy(EngineJob, bpy.types.Operator):
     def compute(self, inputs, settings, progress):
         states = inputs["states"]
         u = stratum_policy(inputs["dynamics"], inputs["solution"], "all")
+        if not states.unknowns.identity:   # glossy points: the u* of one outgoing direction
+            u = arrow_geometry.directional_policy(inputs["scene"], states, inputs["dynamics"], u,
+                                                  optimal_policy(inputs["lmdp"], inputs["solution"]),
+                                                  inputs["candidates"])
         view = arrow_geometry.policy_view(states, u, inputs["subset"], inputs["max_points"], inputs["scale"],
                                           inputs["candidates"], probe=inputs["probe"])
         mesh = arrow_mesh_arrays(view.arrows, inputs["scale"]) if inputs["as_mesh"] else None
@@ -200,7 +207,7 @@ class LMDP_OT_probe_policy(EngineJob, bpy.types.Operator):
         location = np.array(context.scene.cursor.location if self.use_cursor else self.location, dtype=np.float64)
         scale = self.arrow_scale if self.arrow_scale > 0 else context.scene.lmdp.policy_arrow_scale
         self._inputs = {"states": lmdp.states, "dynamics": lmdp.dynamics, "lmdp": lmdp.lmdp,
-                        "solution": solution, "location": location, "scale": scale,
+                        "solution": solution, "location": location, "scale": scale, "scene": lmdp.scene,
                         "longest": self.arrow_scale <= 0, "next_states": self.next_states,
                         "as_mesh": self.as_mesh, "names": current_names(lmdp.scene),
                         "view": session.get("policy")}
@@ -210,13 +217,14 @@ class LMDP_OT_probe_policy(EngineJob, bpy.types.Operator):
         states, dynamics = inputs["states"], inputs["dynamics"]
         u = stratum_policy(dynamics, inputs["solution"], "all")
         U = optimal_policy(inputs["lmdp"], inputs["solution"])
+        u = arrow_geometry.directional_policy(inputs["scene"], states, dynamics, u, U)
 
         def row(i):
             return U.indices[U.indptr[i]:U.indptr[i + 1]], U.data[U.indptr[i]:U.indptr[i + 1]]
         probe = arrow_geometry.probe(states, u, row, inputs["location"], inputs["scale"], inputs["next_states"],
                                      longest=inputs["longest"])
-        cols, vals = row(probe.state)
-        m = states.n_points
+        cols, vals = row(arrow_geometry.probe_unknown(states, probe.state))
+        m = states.n_unknowns
         to_lights = float(vals[(cols >= m) & (cols < m + dynamics.n_emitters)].sum())
         mesh = None
         if inputs["as_mesh"]:

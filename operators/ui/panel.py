@@ -204,8 +204,11 @@ class LMDP_PT_sample(_LMDPSection, bpy.types.Panel):
         _operator(layout, "lmdp.sample_states", icon='STICKY_UVS_DISABLE')
         states = _result(context, "states")
         if states is not None and hasattr(states, "n_states"):
+            glossy = getattr(states, "unknowns", None)
+            glossy = (f"; {glossy.n_glossy:,} glossy points: {glossy.n_unknowns:,} unknowns"
+                      if glossy is not None and glossy.n_glossy else "")
             _status(layout, f"{states.n_points:,} points x {states.n_strata} strata = "
-                            f"{states.n_states:,} states{_timing(context, 'states')}")
+                            f"{states.n_states:,} states{glossy}{_timing(context, 'states')}")
 
 
 class LMDP_PT_build(_LMDPSection, bpy.types.Panel):
@@ -223,7 +226,7 @@ class LMDP_PT_build(_LMDPSection, bpy.types.Panel):
         _operator(layout, "lmdp.build_dynamics", icon='LIGHT')
         dynamics = _result(context, "dynamics")
         if dynamics is not None and hasattr(dynamics, "P"):
-            _status(layout, f"P: {dynamics.n_points:,} x {dynamics.n_columns:,}, nnz {dynamics.P.nnz:,}, "
+            _status(layout, f"P: {dynamics.P.shape[0]:,} x {dynamics.n_columns:,}, nnz {dynamics.P.nnz:,}, "
                             f"{format_bytes(dynamics.memory_bytes())}{_timing(context, 'dynamics')}")
 
 

@@ -265,9 +265,9 @@ def test_imported_gltf_metals_light_a_receiver_as_in_cycles(fresh_scene, lmdp_ex
 @pytest.mark.parametrize("mode", ["GUIDED", "FINAL_GATHER"])
 def test_glossy_box_guided_and_final_gather_match_cycles(fresh_scene, lmdp_ext, demo, mode):
     """GUIDED (BSDF sampling at glossy vertices) is unbiased; FINAL_GATHER's solution gives glossy
-    points the hemispherical albedo of their BSDF (``bsdf.lambertian_albedo``) and continues
-    glossy hits as paths: its bias within 2 % plus 2 standard errors of Cycles (with the diffuse
-    albedo alone, as before: -5.3 / -5.1 / -4.0 % ± 1.0 / 0.9 / 1.3 %, outside that bound)."""
+    points one unknown per outgoing stratum (``model/unknowns.py``) and continues glossy hits as
+    paths: its bias within 2 % plus 2 standard errors of Cycles (with the diffuse albedo alone,
+    as once: -5.3 / -5.1 / -4.0 % ± 1.0 / 0.9 / 1.3 %, outside that bound)."""
     build("GLOSSY_BOX", lmdp_ext)
     refs = reference(lmdp_ext, demo, "Floor", RESOLUTION, 1024)
     fresh_scene.lmdp.point_count = 2048
@@ -276,7 +276,7 @@ def test_glossy_box_guided_and_final_gather_match_cycles(fresh_scene, lmdp_ext, 
     assert bpy.ops.lmdp.run_pipeline(show=False, bake=False) == {'FINISHED'}
     ob = lmdp_bake(lmdp_ext, "Floor", mode, RESOLUTION, 256)
     warnings = lmdp_ext.sub("operators.session").session_for(fresh_scene).require("bake").warnings
-    assert any("treats them as Lambertian surfaces" in w for w in warnings), warnings
+    assert any("one unknown per outgoing stratum" in w for w in warnings), warnings
     ours, cyc, var_o, var_c = compare(ob, refs)
     rel = ours.mean(axis=0) / cyc.mean(axis=0) - 1.0
     sigma = np.sqrt((var_o.sum(axis=0) + var_c.sum(axis=0)) / len(ours) ** 2) / cyc.mean(axis=0)
