@@ -671,7 +671,7 @@ class _DynamicsBuild:
         lamp = self.lamp_entries(ids) if len(self.lamps) else None
         col, tri, dist, c = self._classify(origins, dirs, hits, inside, out)
         if transparency is not None:
-            col[tri == ABSORBED] = self.m + self.E + 1     # past too many transparent surfaces
+            col[tri == ABSORBED] = self.m + self.E + self.W     # the void: past too many transparent surfaces
         col = self._unknown_columns(col, dirs)
         rows, cols, weights = self._stratum_entries(ids, dirs, col, tri, dist)
         for extra in (nee, lamp):

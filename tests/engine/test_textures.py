@@ -245,3 +245,33 @@ def test_bakes_through_transparency_do_not_depend_on_the_thread_count():
     three = bake(scene, ["Floor"], settings, threads=3).object("Floor").value
     assert one.sum() > 0
     np.testing.assert_array_equal(one, three)
+
+
+def test_rays_absorbed_past_the_transparent_limit_go_to_the_void_under_an_environment_map():
+    """Under an environment map (W world-bin columns) the build's rays absorbed by too many
+    transparent surfaces land in the void, not in a world bin: with Transparent Max Bounces 0 a
+    clear leaf stops every ray, so the world columns hold what they hold with the leaf as an
+    opaque surface that carries no states (whose hits are void too)."""
+    from lmdp_addon.model.dynamics import build_passive_dynamics
+    from lmdp_addon.model.states import sample_states
+    from lmdp_addon.world import EnvironmentMap
+
+    sky = np.ones((8, 16, 3), np.float32) * np.linspace(0.5, 2.0, 16)[None, :, None]
+
+    def build(plain):
+        scene = cornell_with_leaf(0.0, z=0.5)
+        scene.surface.transparent_max_bounces = 0
+        if plain:
+            scene.surface = None
+        scene.environment = EnvironmentMap(sky)
+        scene.world_radiance = scene.environment.mean_radiance().astype(np.float32)
+        scene.object_carries_states[:] = [n == "Floor" for n in scene.object_names]
+        states = sample_states(scene, 128, seed=2)
+        return build_passive_dynamics(scene, states, rays_per_stratum=2, seed=5, light_samples=8)
+
+    absorbed, plain = build(False), build(True)
+    assert absorbed.n_world > 1
+    world = absorbed.world_columns
+    np.testing.assert_allclose(absorbed.P[:, world].toarray(), plain.P[:, world].toarray(), atol=1e-6)
+    void = absorbed.void_column
+    np.testing.assert_allclose(absorbed.P[:, void].toarray(), plain.P[:, void].toarray(), atol=1e-6)
