@@ -188,8 +188,17 @@ def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
     """
     rows = np.asarray(rows, dtype=np.float64)
     out = rows.copy()
+    for ids, near, w in neighbour_weights(locator, normals, neighbours, max_angle):
+        out[ids] = np.einsum("ik,iks->is", w, rows[near])
+    return out
+
+
+def neighbour_weights(locator, normals, neighbours, max_angle=None):
+    """The averaging of :func:`neighbour_average`, one object at a time: ``(ids (n_o,),
+    near (n_o, k), w (n_o, k))``, the mean of point ``ids[i]``'s row being
+    ``Σ_j w[i, j] row[near[i, j]]`` (objects whose points keep their rows are left out)."""
     if neighbours <= 1:
-        return out
+        return
     cos_max = np.cos(np.radians(NEIGHBOUR_MAX_ANGLE if max_angle is None else max_angle))
     for o, tree in locator.trees.items():  # loop over objects, not points
         ids = locator.index[o]
@@ -201,19 +210,12 @@ def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
         close = np.einsum("ij,ikj->ik", normals[ids], normals[near]) >= cos_max
         branch = (normals[ids, 2] >= 0.0)[:, None] == (normals[near, 2] >= 0.0)
         same = close & branch
-        w = same / same.sum(axis=1, keepdims=True)                       # self is always in
-        out[ids] = np.einsum("ik,iks->is", w, rows[near])
-    return out
+        yield ids, near, same / same.sum(axis=1, keepdims=True)          # self is always in
 
 
-def build_guide(scene, lmdp):
-    """:class:`StateGuide` of the solved states for tracing ``scene``.
-
-    ``lmdp``: anything with ``scene``, ``states``, ``dynamics``, ``solution``. The build's
-    locator (``dynamics.locator``) serves when it has one: the same states on the same scene;
-    otherwise the states get a locator of their own. On another scene than the states' one,
-    objects are matched by name (``object_map``).
-    """
+def guide_frame(scene, lmdp):
+    """``(locator, object_map, same_scene)`` of a guide of ``lmdp``'s states for tracing ``scene``
+    (:func:`build_guide`)."""
     same = scene_fingerprint(scene) == scene_fingerprint(lmdp.scene)
     locator = lmdp.dynamics.locator
     if locator is None:
@@ -222,6 +224,24 @@ def build_guide(scene, lmdp):
     if not same:
         lookup = {n: i for i, n in enumerate(lmdp.scene.object_names)}
         object_map = np.array([lookup.get(n, -1) for n in scene.object_names], dtype=np.int64)
+    return locator, object_map, same
+
+
+def build_guide(scene, lmdp, fine=False, seed=0, paths=None):
+    """:class:`StateGuide` of the solved states for tracing ``scene``.
+
+    ``lmdp``: anything with ``scene``, ``states``, ``dynamics``, ``solution``. The build's
+    locator (``dynamics.locator``) serves when it has one: the same states on the same scene;
+    otherwise the states get a locator of their own. On another scene than the states' one,
+    objects are matched by name (``object_map``). ``fine`` (GUIDED bakes) with a PHYSICAL
+    solution: the fine guide of :mod:`~lmdp_addon.bake.fine_guide` (G x G cells of the light
+    arriving at each state, traced with ``seed``, G from the bake's ``paths``); otherwise
+    u*(k|s) over the solve's strata.
+    """
+    if fine and lmdp.solution.cost_mode == "PHYSICAL":
+        from .fine_guide import build_fine_guide     # it builds on this module's StateGuide
+        return build_fine_guide(scene, lmdp, seed=seed, paths=paths)
+    locator, object_map, same = guide_frame(scene, lmdp)
     # Both policies side by side: one neighbour search averages them (the mean is per column).
     S = lmdp.states.n_strata
     both = neighbour_average(np.hstack([stratum_policy(lmdp.dynamics, lmdp.solution, "points"),
