@@ -37,8 +37,8 @@ import scipy.sparse as sp
 from .. import world as world_light
 from ..bsdf import lambertian_albedo_at
 from ..lights import EmitterSampler
-from ..model.hemisphere import square_to_hemisphere
 from ..raycast import RayCaster
+from ..sampling import concentric32, rotate_out, rows
 from .guide import GUIDE_NEIGHBOURS, StateGuide, guide_frame, neighbour_weights
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -126,7 +126,7 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
     reflects = ~scene.is_emissive()
     smooth = scene.has_smooth_normals()
     lifted = caster.lift(states.points, states.normals, states.point_triangle).astype(np.float32)
-    frames = np.asarray(states.frames, dtype=np.float64)
+    frames = np.asarray(states.frames, dtype=np.float32)
     live = np.arange(m) if locator is None or locator.targets is None else np.flatnonzero(locator.targets)
     rng = np.random.default_rng([int(seed), 0xF1E6])
     owner_all, cell_all = cells_of_states(len(live), G, rays_per_cell, rng)
@@ -135,11 +135,13 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
     for start in range(0, len(owner_all), CHUNK_RAYS):
         owner = owner_all[start:start + CHUNK_RAYS]
         c = cell_all[start:start + CHUNK_RAYS]
-        u = (c // G + rng.random(len(c))) / G
-        v = (c % G + rng.random(len(c))) / G
-        local = square_to_hemisphere(u, v)
-        d = np.einsum("ki,kij->kj", local, frames[owner]).astype(np.float32)
-        weight = local[:, 2] if product else np.ones(len(local))
+        x, y = concentric32((c // G + rng.random(len(c), dtype=np.float32)) / G,
+                            (c % G + rng.random(len(c), dtype=np.float32)) / G)
+        r2 = x * x + y * y
+        lift = np.sqrt(np.maximum(2.0 - r2, 0.0))      # the equal-area lift (hemisphere.py)
+        cos = 1.0 - r2
+        d = rotate_out(rows(frames, owner), x * lift, y * lift, cos)
+        weight = cos.astype(np.float64) if product else np.ones(len(c))
         origin = lifted[owner]
         if lights.transparency is None:
             tri, _, bu, bv = caster.intersect(origin, d, barycentrics=True)
