@@ -17,7 +17,9 @@ GUIDED uses the fine guide (``bake/fine_guide.py``); ``--fine`` adds GUIDED bake
 guides (:data:`FINE_VARIANTS`: ``strata``, u* over the solve's 16 strata; fine-guide variants,
 ``G16@0.3`` with α = 0.3). The time of a guide's table is listed on its own ("table s"): the
 cost ratio and the first efficiency leave it out, the efficiency with precompute counts it and
-the LMDP's. ``--only-fine``: UNGUIDED, GUIDED and the ``--fine`` variants only.
+the LMDP's. ``--only-fine``: UNGUIDED, GUIDED and the ``--fine`` variants only. "median": the
+median over the texels of each texel's variance ratio to UNGUIDED's (robust to the rare bright
+paths that make the mean variance noisy). ``--cpu``: times in CPU seconds of the process.
 """
 import argparse
 import sys
@@ -35,6 +37,9 @@ from lmdp_addon.model import pipeline  # noqa: E402
 from lmdp_addon.settings import Settings  # noqa: E402
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+#: Time the bakes in CPU seconds of this process (``--cpu``): on a machine that other work
+#: shares, wall time also counts the waits for a core.
+CPU_TIME = False
 
 
 #: Fine-guide variants (``--fine``): label -> ``fine_guide.build_fine_guide`` keywords.
@@ -63,8 +68,10 @@ def measure(scene, receiver, settings, lmdp, technique):
     seconds_table = []
     if mode == "GUIDED" and "fine" not in options:   # the default guide: time its table too
         def build(scene_, lmdp_, fine=False, seed=0, paths=None):
+            t0 = time.process_time() if CPU_TIME else time.perf_counter()
             g = saved[1](scene_, lmdp_, fine=fine, seed=seed, paths=paths)
-            seconds_table.append(getattr(g, "info", {}).get("fine_seconds", 0.0))
+            if hasattr(g, "info"):
+                seconds_table.append((time.process_time() if CPU_TIME else time.perf_counter()) - t0)
             return g
         driver.build_guide = build
     if "ratio" in options:
@@ -73,23 +80,24 @@ def measure(scene, receiver, settings, lmdp, technique):
         def build(scene_, lmdp_, fine=False, seed=0, paths=None):
             if options["fine"] is None:
                 return saved[1](scene_, lmdp_)
+            t0 = time.process_time() if CPU_TIME else time.perf_counter()
             g = fine_guide.build_fine_guide(scene_, lmdp_, seed=seed, **options["fine"])
-            seconds_table.append(g.info["fine_seconds"])
+            seconds_table.append((time.process_time() if CPU_TIME else time.perf_counter()) - t0)
             return g
         driver.build_guide = build
     if "fraction" in options:
         settings = replace(settings, guide_fraction=options["fraction"])
     try:
-        t0 = time.perf_counter()
+        t0 = time.process_time() if CPU_TIME else time.perf_counter()
         result = driver.bake(scene, [receiver], replace(settings, bake_mode=mode),
                              lmdp if mode != "UNGUIDED" else None, threads=1)
-        seconds = time.perf_counter() - t0
+        seconds = (time.process_time() if CPU_TIME else time.perf_counter()) - t0
     finally:
         residual.CONTROL_RATIO, driver.build_guide = saved
     ob = result.objects[0]
     value, se = ob.value @ LUMINANCE, ob.standard_error @ LUMINANCE
     return (float(np.mean(se ** 2) / np.mean(value) ** 2 * settings.bake_samples), seconds,
-            float(sum(seconds_table)))
+            float(sum(seconds_table)), se.astype(np.float64) ** 2)
 
 
 def techniques_of(args):
@@ -120,7 +128,10 @@ def main(argv=None):
     parser.add_argument("--fine", default="strata",
                         help="fine-guide variants, comma-separated (FINE_VARIANTS; 'G16@0.3': α = 0.3)")
     parser.add_argument("--only-fine", action="store_true", help="UNGUIDED, GUIDED and the fine variants only")
+    parser.add_argument("--cpu", action="store_true", help="time in CPU seconds of this process (CPU_TIME)")
     args = parser.parse_args(argv)
+    global CPU_TIME
+    CPU_TIME = args.cpu
     techniques = techniques_of(args)
     for kind, receiver in zip(args.cases[::2], args.cases[1::2]):
         scene = scenes.build_scene_arrays(kind)
@@ -132,22 +143,29 @@ def main(argv=None):
         for r in range(args.repeats):
             for t in techniques:
                 runs[t[0]].append(measure(scene, receiver, replace(settings, seed=100 + r), lmdp, t))
-        base_var = np.mean([v for v, _, _ in runs["UNGUIDED"]])
-        base_sec = np.mean([s for _, s, _ in runs["UNGUIDED"]])
+        base_var = np.mean([r[0] for r in runs["UNGUIDED"]])
+        base_sec = np.mean([r[1] for r in runs["UNGUIDED"]])
         print(f"{kind} / {receiver}: {args.resolution}² texels x {args.samples} samples, {args.repeats} repeats, "
-              f"UNGUIDED bake {base_sec:.2f} s, "
-              f"LMDP precompute {precompute:.2f} s")
-        print(f"  {'technique':22s} {'variance/sample':>16s} {'ratio':>6s} {'table s':>8s} {'cost ratio':>10s} "
-              f"{'efficiency':>10s} {'with precompute':>15s}")
+              f"UNGUIDED bake {base_sec:.2f} s{' CPU' if CPU_TIME else ''}, LMDP precompute {precompute:.2f} s")
+        print(f"  {'technique':22s} {'variance/sample':>16s} {'ratio':>6s} {'median':>6s} {'table s':>8s} "
+              f"{'cost ratio':>10s} {'efficiency':>10s} {'with precompute':>15s}")
         for label, mode, _ in techniques:
-            var = np.mean([v for v, _, _ in runs[label]])
-            sec = np.mean([s for _, s, _ in runs[label]])
-            table = np.mean([g for _, _, g in runs[label]])
+            var = np.mean([r[0] for r in runs[label]])
+            sec = np.mean([r[1] for r in runs[label]])
+            table = np.mean([r[2] for r in runs[label]])
+            median = np.mean([_median_ratio(r[3], u[3]) for r, u in zip(runs[label], runs["UNGUIDED"])])
             trace = sec - table            # the bake without the guide's table
             wall = sec + (precompute if mode != "UNGUIDED" else 0.0)
-            print(f"  {label:22s} {var:16.3g} {var / base_var:6.2f} {table:8.2f} {trace / base_sec:10.2f} "
-                  f"{base_var * base_sec / (var * trace):10.2f} {base_var * base_sec / (var * wall):15.2f}")
+            print(f"  {label:22s} {var:16.3g} {var / base_var:6.2f} {median:6.2f} {table:8.2f} "
+                  f"{trace / base_sec:10.2f} {base_var * base_sec / (var * trace):10.2f} "
+                  f"{base_var * base_sec / (var * wall):15.2f}")
 
+
+def _median_ratio(var, base):
+    """Median over the texels lit in both of the ratio of their variances (``var`` over
+    ``base``, luminance): robust to the rare bright paths that dominate the mean variance."""
+    lit = (var > 0) & (base > 0)
+    return float(np.median(var[lit] / base[lit])) if np.any(lit) else float("nan")
 
 if __name__ == "__main__":
     main()
