@@ -229,15 +229,16 @@ def guide_rows(table, floor=FINE_FLOOR):
     return (1.0 - floor) * q + floor / C
 
 
-def fine_resolution(n_points, paths=None, rays_per_cell=FINE_RAYS_PER_CELL):
+def fine_resolution(n_points, paths=None, rays_per_cell=FINE_RAYS_PER_CELL, minimum=4):
     """G for ``n_points`` states and a bake of about ``paths`` paths (None: unknown): the largest
     power of two up to :data:`FINE_RESOLUTION` whose table fits the ray budget
-    (:data:`FINE_RAY_BUDGET`, :data:`FINE_RAYS_PER_PATH`), at least 4."""
+    (:data:`FINE_RAY_BUDGET`, :data:`FINE_RAYS_PER_PATH`), and never below ``minimum`` (the
+    side of the solve's own strata grid: the guide is never coarser than the u* it replaces)."""
     budget = FINE_RAY_BUDGET if paths is None else min(FINE_RAY_BUDGET, FINE_RAYS_PER_PATH * paths)
     G = FINE_RESOLUTION
     while G > 4 and n_points * G * G * rays_per_cell > budget:
         G //= 2
-    return G
+    return max(G, int(minimum))
 
 
 def build_fine_guide(scene, lmdp, resolution=None, rays_per_cell=FINE_RAYS_PER_CELL, seed=0,
@@ -251,7 +252,8 @@ def build_fine_guide(scene, lmdp, resolution=None, rays_per_cell=FINE_RAYS_PER_C
     seconds of the table."""
     t0 = time.perf_counter()
     if resolution is None:
-        resolution = fine_resolution(lmdp.states.n_points, paths, rays_per_cell)
+        resolution = fine_resolution(lmdp.states.n_points, paths, rays_per_cell,
+                                     minimum=max(4, lmdp.states.strata_u, lmdp.states.strata_v))
     first, later, count, rays = incoming_table(lmdp, resolution, rays_per_cell, seed, product, direct)
     locator, object_map, same = guide_frame(scene, lmdp)
     W = neighbour_matrix(locator, lmdp.states.normals, GUIDE_NEIGHBOURS if neighbours is None else int(neighbours))

@@ -127,6 +127,7 @@ def test_thesis_solutions_keep_the_strata_guide_and_g_follows_the_budget(cornell
     assert fine_guide.fine_resolution(8192) == 8
     assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 64) == 8       # 1/8 ray per path
     assert fine_guide.fine_resolution(10 ** 6) == 4
+    assert fine_guide.fine_resolution(10 ** 6, minimum=8) == 8              # never below the strata
 
 
 def test_fine_guide_under_an_environment_map():
