@@ -53,6 +53,8 @@ FINE_VARIANTS = {
     "G32-R1/4": dict(resolution=32, rays_per_cell=0.25),
     "G16-nodirect": dict(resolution=16, direct=False),
     "G16-nonbr": dict(resolution=16, neighbours=1),
+    "G16-n8": dict(resolution=16, neighbours=8),
+    "G8-n32": dict(resolution=8, neighbours=32),
     "G16-floor0.05": dict(resolution=16, floor=0.05),
     "G16-floor0.2": dict(resolution=16, floor=0.2),
 }
