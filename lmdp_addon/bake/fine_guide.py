@@ -12,8 +12,8 @@ PHYSICAL solution (thesis eq. 2.22 with z the outgoing radiance of the states):
 
     L_r(y) = ρ(y) (D̂(y) + ẑ_in(s_y)),      ẑ_in = P_NN z_N + P_NW z_W,
 
-with D̂(y) the direct light at y by one light sample at y itself (emitters and lamps, as the
-tracer samples them: direct light changes within millimetres beside an emitter, so it is not
+with D̂(y) the direct light at y by one light sample at y itself (emitters, lamps and an
+environment map, as the tracer samples them: direct light changes within millimetres beside an emitter, so it is not
 read from a state a spacing away) and ẑ_in the light arriving at y's nearest compatible state
 s_y from other surfaces and the world (one transition of the solved z). Rays that escape see the
 world (later vertices only), emitters and back faces give 0: the texel's own vertex wants light
@@ -21,8 +21,10 @@ that has bounced, and next-event estimation covers the emitters at later vertice
 split as ``policy.stratum_policy``'s 'points' and 'points+world').
 
 The row of s is ``q_s(c) ∝ L̂_s(c) · cos θ_c`` (the product with the cosine of the integrand of
-eq. 2.7; ``product=False``: L̂ alone), averaged over s's neighbours with the same normal
-(``guide.neighbour_average``: R x neighbours rays per cell) and floored at ``floor / G²``. The
+eq. 2.7; ``product=False``: L̂ alone), the sums and ray counts of each cell averaged over s's
+neighbours with the same normal (:func:`neighbour_matrix`, the neighbours of
+``guide.neighbour_average``: R x neighbours rays per cell), with a share ``floor`` spread
+uniformly (0 by default). G follows a ray budget (:func:`fine_resolution`). The
 tracer samples it through :class:`~lmdp_addon.bake.guide.StateGuide` with ``strata_u = strata_v
 = G`` (the mixture ``α q_s(c) G² / 2π + (1 - α) cos θ / π``, exact pdf, unbiased for α < 1).
 
@@ -45,8 +47,8 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 #: Most cells per side of the guide's square (G): 256 cells of 0.025 sr.
 FINE_RESOLUTION = 16
 #: Rays of the table (states x G² x R) that choose G: the largest power of two up to
-#: :data:`FINE_RESOLUTION` within the budget (at least 4), so the table costs at most a fixed
-#: fraction of a second whatever the point count ...
+#: :data:`FINE_RESOLUTION` within the budget (:func:`fine_resolution`), so the table costs at
+#: most a fixed fraction of a second whatever the point count ...
 FINE_RAY_BUDGET = 1 << 19
 #: ... and at most this many table rays per path of the bake (each path traces 3-4 rays and
 #: shadow rays): the table stays a small part of the bake it guides.
@@ -98,13 +100,14 @@ def cells_of_states(n, resolution, rays_per_cell, rng):
 
 
 def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER_CELL, seed=0,
-                   product=True, direct=True):
+                   product=True, direct=True, locator=None):
     """``(first, later, count, rays)``: per state point and cell c of its G x G grid, the sums
     over its rays of L̂_s(c) (times each ray's cosine with ``product``) without the world
     (``first``, the texel vertex) and with it (``later``), (m, G²) float64, the rays through
     each cell ``count`` (m, G²) and the rays traced (closest hits + shadow rays). ``direct``
     False: the direct light at the hit is read from its nearest state too (``ẑ_in`` + the
-    state's terminal drive) instead of sampled there."""
+    state's terminal drive) instead of sampled there. ``locator``: of the states on
+    ``lmdp.scene`` (default the build's)."""
     scene, states, dyn = lmdp.scene, lmdp.states, lmdp.dynamics
     G = int(resolution)
     C = G * G
@@ -115,7 +118,7 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
     if m == 0:
         return first.reshape(m, C), escape.reshape(m, C), count.reshape(m, C), 0
     caster = dyn.caster if dyn.caster is not None else RayCaster(scene)
-    locator = dyn.locator
+    locator = dyn.locator if locator is None else locator
     lights = EmitterSampler(scene)
     environment = scene.environment if getattr(scene, "environment", None) is not None \
         and scene.environment.lit else None
@@ -254,8 +257,8 @@ def build_fine_guide(scene, lmdp, resolution=None, rays_per_cell=FINE_RAYS_PER_C
     if resolution is None:
         resolution = fine_resolution(lmdp.states.n_points, paths, rays_per_cell,
                                      minimum=max(4, lmdp.states.strata_u, lmdp.states.strata_v))
-    first, later, count, rays = incoming_table(lmdp, resolution, rays_per_cell, seed, product, direct)
     locator, object_map, same = guide_frame(scene, lmdp)
+    first, later, count, rays = incoming_table(lmdp, resolution, rays_per_cell, seed, product, direct, locator)
     W = neighbour_matrix(locator, lmdp.states.normals, GUIDE_NEIGHBOURS if neighbours is None else int(neighbours))
     n = np.asarray(W @ count)
     inv = np.where(n > 0, 1.0 / np.where(n > 0, n, 1.0), 0.0)
