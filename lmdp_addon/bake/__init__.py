@@ -7,6 +7,7 @@ results  ``ObjectBake``, ``BakeResult`` (``bake_stats.json``), ``IMAGE_SUFFIX``
 texels   texel rasterisation (Cycles' mapping of a UV map), footprint samples, margin dilation
 tracer   the wavefront path tracer ``IndirectTracer`` and its ``TraceStats``
 guide    the guide: ``StateGuide``, ``neighbour_average``, ``build_guide``, direction sampling
+fine_guide  GUIDED's table: the light arriving at each state through G x G cells (``build_fine_guide``)
 gather   final gather: ``GatherField``, ``build_gather``, ``direct_after_one_bounce``
 
 Light sampling (shared with the build) is ``lmdp_addon/lights.py``; the shared sequences and

@@ -311,9 +311,11 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
     info = {}
     control = None
     if mode in ("GUIDED", "FINAL_GATHER", "RESIDUAL"):
-        guide = build_guide(scene, lmdp)
+        guide = build_guide(scene, lmdp, fine=mode == "GUIDED", seed=settings.seed,
+                            paths=settings.bake_resolution ** 2 * settings.bake_samples)
         info = {"same_scene": bool(guide.same_scene), "points": int(lmdp.states.n_points),
-                "strata": int(lmdp.states.n_strata), "cost_mode": lmdp.solution.cost_mode}
+                "strata": int(lmdp.states.n_strata), "cost_mode": lmdp.solution.cost_mode,
+                **getattr(guide, "info", {})}
         if mode in ("FINAL_GATHER", "RESIDUAL"):
             gather = build_gather(guide, lmdp, settings.max_bounces, seed=settings.seed)
         if mode == "RESIDUAL":    # cosine paths: the guide only serves the gather's locator

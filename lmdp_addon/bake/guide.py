@@ -83,9 +83,9 @@ class StateGuide:
         self.later = _normalised_rows(self.later)
         self.cdf_first = _row_cdf(self.first)
         self.cdf_later = _row_cdf(self.later)
-        shift = np.arange(len(self.first), dtype=np.float64)[:, None]
-        self.offset_cdf_first = (self.cdf_first + shift).ravel()
-        self.offset_cdf_later = (self.cdf_later + shift).ravel()
+        if self.n_strata > 32:   # fine tables: cut points of every row (:meth:`_fine_strata`)
+            self.cut_first = _cut_points(self.cdf_first)
+            self.cut_later = _cut_points(self.cdf_later)
 
     @property
     def n_strata(self):
@@ -130,9 +130,8 @@ class StateGuide:
         S = self.n_strata
         if S <= 32:  # the stratum is the count of row entries <= u: one row gather, S compares
             k = np.minimum(np.count_nonzero(np.take(cdf, states, axis=0) <= u[:, 0:1], axis=1), S - 1)
-        else:  # row s of the CDF shifted by s is one increasing array: one binary search
-            offset = self.offset_cdf_first if first else self.offset_cdf_later
-            k = np.clip(np.searchsorted(offset, states + u[:, 0], side="right") - states * S, 0, S - 1)
+        else:
+            k = self._fine_strata(cdf, self.cut_first if first else self.cut_later, states, u[:, 0])
         flat = states * S + k
         lo = np.where(k > 0, np.take(cdf, flat - 1), 0.0)
         p = np.take(prob, flat)
@@ -147,6 +146,23 @@ class StateGuide:
         if return_density:
             return d, p * (S / (2.0 * np.pi))
         return d
+
+    @staticmethod
+    def _fine_strata(cdf, cut, states, u):
+        """The first k with ``cdf[s, k] > u`` (the stratum of u under row s) for long rows, by the
+        cut-point method (Chen & Asau): ``cut[s, j]`` is a k at or before the answer for every u
+        in [j/S, (j+1)/S), and the search steps forward from there (about one step on average;
+        a loop over steps, not rays)."""
+        S = cdf.shape[1]
+        flat_cdf = cdf.reshape(-1)
+        base = states * S
+        j = np.minimum((u * S).astype(np.int64), S - 1)
+        k = np.take(cut, base + j).astype(np.int64)
+        live = np.flatnonzero(np.take(flat_cdf, base + k) <= u)
+        while len(live):
+            k[live] += 1
+            live = live[np.take(flat_cdf, base[live] + k[live]) <= u[live]]
+        return np.minimum(k, S - 1)
 
     def density(self, states, directions, first):
         """g_s(ω) (k,) for world directions ``(k, 3)``: u*(k|s) S / 2π, 0 below s's horizon."""
@@ -169,6 +185,18 @@ def _row_cdf(p):
     return cdf
 
 
+def _cut_points(cdf):
+    """(m, S) int32: per row s and bin j the number of CDF entries at or below j/S - 1e-9, a
+    stratum at or before the one of every u in [j/S, (j+1)/S) (``StateGuide._fine_strata``);
+    the rows shifted by s form one increasing array, so one binary search serves all rows."""
+    m, S = cdf.shape
+    shift = np.arange(m, dtype=np.float64)[:, None]
+    offset = (cdf + shift).ravel()
+    target = (np.arange(S) / S - 1e-9)[None, :] + shift
+    return (np.searchsorted(offset, target.ravel(), side="right").reshape(m, S)
+            - np.arange(m)[:, None] * S).clip(0, S - 1).astype(np.int32)
+
+
 def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
     """Mean of the per-stratum distributions ``rows (m, S)`` (or several side by side, (m, n S):
     the mean is taken per column) over each point's ``neighbours`` nearest points (``locator``'s
@@ -188,8 +216,17 @@ def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
     """
     rows = np.asarray(rows, dtype=np.float64)
     out = rows.copy()
+    for ids, near, w in neighbour_weights(locator, normals, neighbours, max_angle):
+        out[ids] = np.einsum("ik,iks->is", w, rows[near])
+    return out
+
+
+def neighbour_weights(locator, normals, neighbours, max_angle=None):
+    """The averaging of :func:`neighbour_average`, one object at a time: ``(ids (n_o,),
+    near (n_o, k), w (n_o, k))``, the mean of point ``ids[i]``'s row being
+    ``Σ_j w[i, j] row[near[i, j]]`` (objects whose points keep their rows are left out)."""
     if neighbours <= 1:
-        return out
+        return
     cos_max = np.cos(np.radians(NEIGHBOUR_MAX_ANGLE if max_angle is None else max_angle))
     for o, tree in locator.trees.items():  # loop over objects, not points
         ids = locator.index[o]
@@ -201,19 +238,12 @@ def neighbour_average(rows, locator, normals, neighbours, max_angle=None):
         close = np.einsum("ij,ikj->ik", normals[ids], normals[near]) >= cos_max
         branch = (normals[ids, 2] >= 0.0)[:, None] == (normals[near, 2] >= 0.0)
         same = close & branch
-        w = same / same.sum(axis=1, keepdims=True)                       # self is always in
-        out[ids] = np.einsum("ik,iks->is", w, rows[near])
-    return out
+        yield ids, near, same / same.sum(axis=1, keepdims=True)          # self is always in
 
 
-def build_guide(scene, lmdp):
-    """:class:`StateGuide` of the solved states for tracing ``scene``.
-
-    ``lmdp``: anything with ``scene``, ``states``, ``dynamics``, ``solution``. The build's
-    locator (``dynamics.locator``) serves when it has one: the same states on the same scene;
-    otherwise the states get a locator of their own. On another scene than the states' one,
-    objects are matched by name (``object_map``).
-    """
+def guide_frame(scene, lmdp):
+    """``(locator, object_map, same_scene)`` of a guide of ``lmdp``'s states for tracing ``scene``
+    (:func:`build_guide`)."""
     same = scene_fingerprint(scene) == scene_fingerprint(lmdp.scene)
     locator = lmdp.dynamics.locator
     if locator is None:
@@ -222,6 +252,24 @@ def build_guide(scene, lmdp):
     if not same:
         lookup = {n: i for i, n in enumerate(lmdp.scene.object_names)}
         object_map = np.array([lookup.get(n, -1) for n in scene.object_names], dtype=np.int64)
+    return locator, object_map, same
+
+
+def build_guide(scene, lmdp, fine=False, seed=0, paths=None):
+    """:class:`StateGuide` of the solved states for tracing ``scene``.
+
+    ``lmdp``: anything with ``scene``, ``states``, ``dynamics``, ``solution``. The build's
+    locator (``dynamics.locator``) serves when it has one: the same states on the same scene;
+    otherwise the states get a locator of their own. On another scene than the states' one,
+    objects are matched by name (``object_map``). ``fine`` (GUIDED bakes) with a PHYSICAL
+    solution: the fine guide of :mod:`~lmdp_addon.bake.fine_guide` (G x G cells of the light
+    arriving at each state, traced with ``seed``, G from the bake's ``paths``); otherwise
+    u*(k|s) over the solve's strata.
+    """
+    if fine and lmdp.solution.cost_mode == "PHYSICAL":
+        from .fine_guide import build_fine_guide     # it builds on this module's StateGuide
+        return build_fine_guide(scene, lmdp, seed=seed, paths=paths)
+    locator, object_map, same = guide_frame(scene, lmdp)
     # Both policies side by side: one neighbour search averages them (the mean is per column).
     S = lmdp.states.n_strata
     both = neighbour_average(np.hstack([stratum_policy(lmdp.dynamics, lmdp.solution, "points"),
