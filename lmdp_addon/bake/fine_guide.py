@@ -70,19 +70,24 @@ CHUNK_RAYS = 1 << 18
 def incoming_radiance_source(lmdp, with_terminals=False):
     """ẑ_in (m,) luminance: the light arriving at each state point from the other surfaces and
     the world in one transition of the solved z, ``P_NN z_N + P_NW z_W`` (PHYSICAL);
-    ``with_terminals``: from every column (emitters and lamps too), ``P z``."""
+    ``with_terminals``: from every column (emitters and lamps too), ``P z``. A glossy point's
+    S unknowns (``model.unknowns``) each have a row: the point's value is their mean."""
     problem, dyn = lmdp.lmdp, lmdp.dynamics
-    m = dyn.n_points
+    n = dyn.n_unknowns
     z = lmdp.solution.z @ LUMINANCE if lmdp.solution.z.shape[1] == 3 else lmdp.solution.z[:, 0]
     zt = problem.z_terminal @ LUMINANCE if problem.z_terminal.shape[1] == 3 else problem.z_terminal[:, 0]
     col = np.zeros(problem.P.shape[1])
-    col[:m] = z
+    col[:n] = z
     if with_terminals:
-        col[m:] = zt
+        col[n:] = zt
     else:
         world = np.asarray(dyn.world_columns, dtype=np.int64)
-        col[world] = zt[world - m]
-    return np.asarray(problem.P @ col).reshape(-1)
+        col[world] = zt[world - n]
+    per_unknown = np.asarray(problem.P @ col).reshape(-1)
+    unknowns = dyn.unknowns
+    if unknowns is None or unknowns.identity:
+        return per_unknown
+    return np.bincount(unknowns.point, weights=per_unknown, minlength=unknowns.n_points) / unknowns.count
 
 
 def cells_of_states(n, resolution, rays_per_cell, rng):
