@@ -17,8 +17,10 @@ density proportional to BRDF·cos within the stratum, so each carries exactly ``
   and of every surface), hits with no compatible state, and escapes into a black world.
 
 Blender's lights (``SceneArrays.lamps``) are terminals too, one column each after the void, that
-no ray hits: their transitions come from light samples alone (:meth:`_DynamicsBuild.lamp_entries`,
-``lamps.Lamps.transitions``), with a mass that times their z_T gives their direct light / π.
+no ray lands in: the build's rays cross lamps as Cycles' rays do (a light is a transparent surface,
+``lamp_hits``), so their transitions come from light samples alone, which carry a lamp's whole
+light (:meth:`_DynamicsBuild.lamp_entries`, ``lamps.Lamps.transitions``), with a mass that times
+their z_T gives their direct light / π.
 
 Glossy points (a material with a microfacet lobe) carry one unknown per outgoing stratum k
 (:mod:`~lmdp_addon.model.unknowns`). Their rows leave x with ``rays_per_stratum`` rays sampled
