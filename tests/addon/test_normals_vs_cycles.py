@@ -51,8 +51,11 @@ def lightmap_uvs(obj):
     bpy.ops.object.mode_set(mode='OBJECT')
 
 
-def check(lmdp_ext, demo, name, samples=512):  # noqa: F811
-    refs = reference(lmdp_ext, demo, name, RESOLUTION, 1024)
+def check(lmdp_ext, demo, name, samples=2048):  # noqa: F811
+    # 2 x 4096 Cycles samples and 2048 of ours: one standard error of the mean stays near 0.4 %, so
+    # the 2 % bound is 5 of them (at 512 / 2 x 1024 it was 2.4 and failed by chance on one layout
+    # of Smart UV Project's islands, which vary from run to run: -2.02 % +- 0.82 %)
+    refs = reference(lmdp_ext, demo, name, RESOLUTION, 4096)
     ob = lmdp_bake(lmdp_ext, name, "UNGUIDED", RESOLUTION, samples)
     ours, cyc, var_o, var_c = compare(ob, refs)
     lit = cyc.sum(axis=1) > 0
