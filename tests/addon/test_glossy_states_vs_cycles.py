@@ -21,7 +21,7 @@ from mathutils import Vector
 
 from helpers import select
 from test_bake_vs_cycles import CACHE, build
-from test_glossy_vs_cycles import GLTF_METAL, cycles_glossy_settings, glossy_floor
+from test_glossy_vs_cycles import GLTF_METAL, cycles_glossy_settings, glossy_floor, import_metals_under_area_light
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 #: Cycles' and the LMDP's path length: far beyond what the Cornell box's albedos let through.
@@ -196,15 +196,7 @@ def test_imported_gltf_metal_radiance_matches_cycles(fresh_scene, lmdp_ext, demo
     sphere reflects the light in a lobe narrower than a stratum (2π/16 sr) over a curved,
     smooth-shaded surface: its views' RMS error is 18 % (the highlight's edge falls inside a
     stratum; 8 x 8 strata on 1024 points: 12.5 %), bound 25 %; the old model's is 250 %."""
-    assert bpy.ops.import_scene.gltf(filepath=GLTF_METAL) == {'FINISHED'}
-    scene = bpy.context.scene
-    demo.configure_cycles(scene)
-    cycles_glossy_settings(scene)
-    light = bpy.data.lights.new("Area", 'AREA')
-    light.size, light.energy = 2.0, 1500.0
-    lamp = bpy.data.objects.new("Area", light)
-    lamp.location = (0.0, 0.0, 4.0)
-    scene.collection.objects.link(lamp)
+    import_metals_under_area_light(demo)
     select([o for o in bpy.data.objects if o.type == 'MESH'])
     rms_new, rms_old, sum_new = directional_errors(lmdp_ext, receiver, f"glTF {receiver}", light_samples=512,
                                                    clear=0.05)

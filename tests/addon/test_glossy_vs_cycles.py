@@ -62,6 +62,21 @@ def cycles_glossy_settings(scene):
     scene.cycles.caustics_reflective = True
 
 
+def import_metals_under_area_light(demo):
+    """The glTF sample's metals (GLTF_METAL) imported by Blender's importer, Cycles configured as
+    the comparisons need, and a 2 m, 1500 W area light 4 m up (the sample's lights import as
+    empties)."""
+    assert bpy.ops.import_scene.gltf(filepath=GLTF_METAL) == {'FINISHED'}
+    scene = bpy.context.scene
+    demo.configure_cycles(scene)
+    cycles_glossy_settings(scene)
+    light = bpy.data.lights.new("Area", 'AREA')
+    light.size, light.energy = 2.0, 1500.0
+    lamp = bpy.data.objects.new("Area", light)
+    lamp.location = (0.0, 0.0, 4.0)
+    scene.collection.objects.link(lamp)
+
+
 def new_material(name, kind, **inputs):
     mat = bpy.data.materials.new(name)
     tree = mat.node_tree
@@ -234,15 +249,7 @@ def test_imported_gltf_metals_light_a_receiver_as_in_cycles(fresh_scene, lmdp_ex
     """The glTF importer's Principled metals (a rough white metal floor, a smooth-shaded metal
     sphere of roughness 0.2) reflect an area light onto a diffuse panel facing the sphere; the
     panel's DIFFUSE / INDIRECT bake matches Cycles'. (The sample's lights import as empties.)"""
-    assert bpy.ops.import_scene.gltf(filepath=GLTF_METAL) == {'FINISHED'}
-    scene = bpy.context.scene
-    demo.configure_cycles(scene)
-    cycles_glossy_settings(scene)
-    light = bpy.data.lights.new("Area", 'AREA')
-    light.size, light.energy = 2.0, 1500.0
-    lamp = bpy.data.objects.new("Area", light)
-    lamp.location = (0.0, 0.0, 4.0)
-    scene.collection.objects.link(lamp)
+    import_metals_under_area_light(demo)
     bpy.ops.mesh.primitive_plane_add(size=3.0, location=(0.0, 2.5, 0.6), rotation=(np.pi / 2, 0.0, 0.0))
     panel = bpy.context.active_object
     panel.name = "Panel"
