@@ -24,6 +24,14 @@ def narrow():
     return scene, pipeline.run_all(scene, Settings(point_count=1024))
 
 
+def mean_and_error(baked):
+    """(3,) mean of a baked object's texels and (3,) its standard error (from the texels' batch
+    errors, independent between texels)."""
+    n = len(baked.value)
+    return (baked.value.astype(float).mean(axis=0),
+            np.sqrt((baked.standard_error.astype(float) ** 2).sum(axis=0)) / n)
+
+
 def test_table_of_a_plane_under_a_uniform_sky_is_the_cosine_of_each_cell():
     """Under a uniform sky L every ray of a lone plane escapes: no light has bounced (the texel
     vertex's table is empty, its rows uniform) and later vertices see L through every cell, so
@@ -81,11 +89,7 @@ def test_fine_guided_bake_is_unbiased_against_unguided_through_the_hatch(narrow,
     un = baking.bake(scene, ["RoomAFloor"], replace(settings, seed=3)).objects[0]
     result = baking.bake(scene, ["RoomAFloor"], replace(settings, bake_mode="GUIDED", seed=4), lmdp)
     assert result.guide_info["fine_resolution"] == 16
-    gu = result.objects[0]
-    n = len(un.value)
-    mu, mg = un.value.astype(float).mean(axis=0), gu.value.astype(float).mean(axis=0)
-    su = np.sqrt((un.standard_error.astype(float) ** 2).sum(axis=0)) / n
-    sg = np.sqrt((gu.standard_error.astype(float) ** 2).sum(axis=0)) / n
+    (mu, su), (mg, sg) = mean_and_error(un), mean_and_error(result.objects[0])
     assert np.all(su < 0.1 * mu) and np.all(sg < 0.1 * mg), (su / mu, sg / mg)
     assert np.all(np.abs(mg - mu) <= K * np.sqrt(su ** 2 + sg ** 2)), (mg, mu, su, sg)
 
@@ -135,15 +139,10 @@ def test_fine_guide_under_an_environment_map():
     """The patch under the +x half of a ground map (``test_world``): the receiver's indirect
     light is ρ L F / 2; the fine guide's table sees the map through the patch (its hits' light
     samples of the map) and GUIDED with it keeps that mean."""
-    from bake_scenes import SKY, expected_patch_indirect, patch_under_sky, trace_at
+    from bake_scenes import expected_patch_indirect, patch_under_sky, trace_at
     from lmdp_addon.bake.tracer import IndirectTracer
-    from test_world import with_environment
-    H, W = 32, 64
-    img = np.full((H, W, 3), SKY, np.float32)
-    img[H // 2:] = 0.0
-    img[:, :W // 4] = 0.0
-    img[:, 3 * W // 4:] = 0.0
-    scene = with_environment(patch_under_sky(), img)
+    from test_world import ground_east_map, with_environment
+    scene = with_environment(patch_under_sky(), ground_east_map())
     lmdp = pipeline.run_all(scene, Settings(point_count=512))
     guide = build_guide(scene, lmdp, fine=True)
     assert guide.n_strata == 256
@@ -165,10 +164,6 @@ def test_fine_guided_glossy_floor_agrees_with_unguided(monkeypatch):
     un = baking.bake(scene, ["Floor"], replace(settings, seed=5)).objects[0]
     result = baking.bake(scene, ["Floor"], replace(settings, bake_mode="GUIDED", seed=6), lmdp)
     assert result.guide_info["fine_resolution"] == 16
-    gu = result.objects[0]
-    n = len(un.value)
-    mu, mg = un.value.astype(float).mean(axis=0), gu.value.astype(float).mean(axis=0)
-    su = np.sqrt((un.standard_error.astype(float) ** 2).sum(axis=0)) / n
-    sg = np.sqrt((gu.standard_error.astype(float) ** 2).sum(axis=0)) / n
+    (mu, su), (mg, sg) = mean_and_error(un), mean_and_error(result.objects[0])
     assert np.all(su < 0.05 * mu), su / mu
     assert np.all(np.abs(mg - mu) <= K * np.sqrt(su ** 2 + sg ** 2)), (mg, mu, su, sg)

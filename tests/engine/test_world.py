@@ -137,6 +137,16 @@ def with_environment(scene, img, rotation=np.eye(3)):
     return scene
 
 
+def ground_east_map(H=32, W=64):
+    """(H, W, 3) a map of radiance SKY only below the horizon and towards +x (u in [1/4, 3/4)),
+    black elsewhere."""
+    img = np.full((H, W, 3), SKY, np.float32)
+    img[H // 2:] = 0.0                            # the sky above the horizon is black
+    img[:, :W // 4] = 0.0                         # u < 1/4 and u >= 3/4: -x
+    img[:, 3 * W // 4:] = 0.0
+    return img
+
+
 @pytest.mark.parametrize("mode", ["constant", "ground", "ground_east"])
 def test_patch_under_environment(mode):
     """The patch of ``bake_scenes.patch_under_sky`` faces down 1 m above the receiver: its
@@ -170,12 +180,7 @@ def test_lmdp_world_terminal_is_directional():
     would give ρ L / 4; the passive dynamics' rows still sum to 1."""
     from lmdp_addon.model import pipeline
     from lmdp_addon.settings import Settings
-    H, W = 32, 64
-    img = np.full((H, W, 3), SKY, np.float32)
-    img[H // 2:] = 0.0
-    img[:, :W // 4] = 0.0
-    img[:, 3 * W // 4:] = 0.0
-    scene = with_environment(patch_under_sky(), img)
+    scene = with_environment(patch_under_sky(), ground_east_map())
     result = pipeline.run_all(scene, Settings(point_count=256, cost_mode="PHYSICAL"))
     dyn = result.dynamics
     assert dyn.n_world == WORLD_BINS_Z * WORLD_BINS_PHI
@@ -200,12 +205,7 @@ def test_solved_modes_under_environment(mode):
     from lmdp_addon.bake.guide import build_guide
     from lmdp_addon.model import pipeline
     from lmdp_addon.settings import Settings
-    H, W = 32, 64
-    img = np.full((H, W, 3), SKY, np.float32)
-    img[H // 2:] = 0.0
-    img[:, :W // 4] = 0.0
-    img[:, 3 * W // 4:] = 0.0
-    scene = with_environment(patch_under_sky(), img)
+    scene = with_environment(patch_under_sky(), ground_east_map())
     lmdp = pipeline.run_all(scene, Settings(point_count=512, cost_mode="PHYSICAL"))
     guide = build_guide(scene, lmdp)
     gather = build_gather(guide, lmdp, 4) if mode == "FINAL_GATHER" else None
