@@ -2,6 +2,7 @@
 thread each) on this machine must give bakes and builds byte-identical to the local ones, also
 when a worker is killed mid-bake, and refuse what it cannot use (an unreachable scheduler, a
 worker with another engine version or a missing dependency, no dask)."""
+import contextlib
 import os
 import re
 import signal
@@ -162,14 +163,17 @@ def test_cancel_stops_the_farm_build(cornell, farm, monkeypatch):
     assert scheduler_tasks_drain(farm)                # ... and are gone
 
 
-def test_a_worker_with_another_engine_version_is_refused(farm):
+@contextlib.contextmanager
+def first_worker_reports_engine(farm, version):
+    """Inside the block the farm's first worker reports engine ``version`` (its
+    ``versions.engine_version`` replaced, restored after); yields that worker's address."""
     client = farm.client
     worker = sorted(client.scheduler_info(n_workers=-1)["workers"])[0]
 
     def patch():
         from lmdp_addon.farm import versions
         versions._real_engine_version = versions.engine_version
-        versions.engine_version = lambda: "0123456789ab"
+        versions.engine_version = lambda: version
 
     def restore():
         from lmdp_addon.farm import versions
@@ -177,10 +181,15 @@ def test_a_worker_with_another_engine_version_is_refused(farm):
 
     client.run(patch, workers=[worker])
     try:
-        with pytest.raises(FarmError) as caught:
-            farm.check_workers()
+        yield worker
     finally:
         client.run(restore, workers=[worker])
+
+
+def test_a_worker_with_another_engine_version_is_refused(farm):
+    with first_worker_reports_engine(farm, "0123456789ab") as worker:
+        with pytest.raises(FarmError) as caught:
+            farm.check_workers()
     message = str(caught.value)
     from lmdp_addon.farm.versions import engine_version
     assert worker in message and "0123456789ab" in message and engine_version() in message
@@ -188,24 +197,9 @@ def test_a_worker_with_another_engine_version_is_refused(farm):
 
 
 def test_a_worker_that_changes_after_the_connect_check_fails_the_bake(cornell, solved, farm, many_units):
-    client = farm.client
-    worker = sorted(client.scheduler_info(n_workers=-1)["workers"])[0]
-
-    def patch():
-        from lmdp_addon.farm import versions
-        versions._real_engine_version = versions.engine_version
-        versions.engine_version = lambda: "fedcba987654"
-
-    def restore():
-        from lmdp_addon.farm import versions
-        versions.engine_version = versions._real_engine_version
-
-    client.run(patch, workers=[worker])
-    try:
+    with first_worker_reports_engine(farm, "fedcba987654") as worker:
         with pytest.raises(EngineMismatch) as caught:    # a new recipe (seed): checked on its first unit
             farm_api.bake(cornell, NAMES, small(seed=1234), lmdp=solved, farm=farm)
-    finally:
-        client.run(restore, workers=[worker])
     assert worker in str(caught.value) and "fedcba987654 on the worker" in str(caught.value)
 
 
