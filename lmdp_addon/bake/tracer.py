@@ -292,8 +292,7 @@ class IndirectTracer:
             p_min, n_glossy = _take(p_min, h), _take(n_glossy, h)
             if self.clamp is not None and bounce >= self.roulette_from:   # Cycles' roulette before y_bounce
                 keep, p_keep = self._cycles_roulette(idx, beta, w, rho0, rng)
-                idx, origin, d, w, beta, tri, dist, bu, bv = _select_rows(keep, idx, origin, d, w, beta, tri,
-                                                                          dist, bu, bv)
+                idx, d, w, beta, tri, dist, bu, bv = _select_rows(keep, idx, d, w, beta, tri, dist, bu, bv)
                 beta = beta / p_keep[:, None]
                 p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
                 if len(idx) == 0:
