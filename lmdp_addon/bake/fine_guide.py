@@ -36,11 +36,11 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from .. import world as world_light
 from ..bsdf import lambertian_albedo_at
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import concentric32, rotate_out, rows
+from .gather import direct_light_at
 from .guide import StateGuide, guide_frame, neighbour_weights
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -184,7 +184,9 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
             albedo = albedo * tint[hit]
         radiance = np.zeros(len(hit))
         if direct:
-            radiance, shadow = _direct_light(scene, lights, environment, caster, pos, ng, t, bu_h, bv_h, smooth, rng)
+            ns = scene.shading_normals(t, bu_h, bv_h) if smooth else ng
+            radiance, shadow = direct_light_at(scene, lights, environment, caster, pos, ns, ng, t, smooth, rng)
+            radiance = np.asarray(radiance, dtype=np.float64)
             radiance = (albedo * radiance) @ LUMINANCE
             rays += shadow
         if locator is not None:
@@ -193,26 +195,6 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
         first += np.bincount(slot[hit], weights=weight[hit] * radiance, minlength=m * C)
     first = first.reshape(m, C)
     return first, first + escape.reshape(m, C), count.reshape(m, C), rays
-
-
-def _direct_light(scene, lights, environment, caster, pos, ng, t, bu, bv, smooth, rng):
-    """``(D̂ (k, 3), shadow rays)``: the direct light at front hits ``pos`` on triangles ``t`` by
-    one light sample of the emitters, the lamps and the environment map each (the tracer's)."""
-    ns = scene.shading_normals(t, bu, bv) if smooth else ng
-    geometric = ng if smooth else None
-    lift = caster.offset(t)
-    direct, rays = lights.direct_light(pos, ns, rng, caster, lift=lift, geometric=geometric)
-    if not scene.lamps.empty:
-        lamp, shadow = scene.lamps.direct_light(pos, ns, rng, caster, lift=lift, geometric=geometric,
-                                                transparency=lights.transparency)
-        direct, rays = direct + lamp, rays + shadow
-    if environment is not None:
-        env, shadow = world_light.next_event(environment, pos.astype(np.float32), ns.astype(np.float32), rng,
-                                             caster, lift.astype(np.float32),
-                                             geometric=None if geometric is None else geometric.astype(np.float32),
-                                             mis=False, transparency=lights.transparency)
-        direct, rays = direct + env, rays + shadow
-    return np.asarray(direct, dtype=np.float64), rays
 
 
 def neighbour_matrix(locator, normals, neighbours):

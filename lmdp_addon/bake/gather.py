@@ -215,18 +215,7 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
             ns = ng
         # glossy hits reflect the direct light towards x through their BSDF (f cos for -ω)
         bsdf = _glossy_hits(scene, glossy, t, bu[hit], bv[hit], ns, ng, -d[hit]) if glossy is not None else None
-        geometric = ng if smooth else None
-        direct = lights.next_event(pos.astype(np.float32), ns.astype(np.float32), rng, caster, mis=False,
-                                   lift=caster.offset(t), geometric=geometric, bsdf=bsdf)[0]
-        if not scene.lamps.empty:
-            direct = direct + scene.lamps.direct_light(pos, ns, rng, caster, lift=caster.offset(t),
-                                                       geometric=geometric, transparency=lights.transparency,
-                                                       bsdf=bsdf)[0]
-        if environment is not None:    # the world's direct light at the hit, by world sampling
-            direct = direct + world_light.next_event(
-                environment, pos.astype(np.float32), ns.astype(np.float32), rng, caster,
-                caster.offset(t).astype(np.float32), geometric=ng.astype(np.float32) if smooth else None,
-                mis=False, transparency=lights.transparency, bsdf=bsdf)[0]
+        direct = direct_light_at(scene, lights, environment, caster, pos, ns, ng, t, smooth, rng, bsdf)[0]
         value = lambertian_albedo_at(scene, t, bu[hit], bv[hit]) * direct
         if bsdf is not None:   # their light is f cos-weighted already
             value[bsdf.mask] = direct[bsdf.mask]
@@ -235,6 +224,29 @@ def direct_after_one_bounce(lmdp, rays_per_point, seed=0, points=None):
         for c in range(3):
             b[:, c] += np.bincount(owner[hit], weights=value[:, c], minlength=m)
     return b / R
+
+
+def direct_light_at(scene, lights, environment, caster, pos, ns, ng, t, smooth, rng, bsdf=None):
+    """``(D̂ (k, 3), shadow rays)``: the direct light at front hits ``pos`` on triangles ``t``
+    (shading normals ``ns``, geometric ``ng``; ``smooth``: the scene's shading normals differ)
+    by one light sample each of the emitters (``lights``), Blender's lights and the environment
+    map (``environment``, or None), in that order of random numbers, without MIS, as the tracer
+    samples them; ``bsdf`` (:class:`~lmdp_addon.bsdf.GlossyRows`): rows shaded with their f cos."""
+    geometric = ng if smooth else None
+    lift = caster.offset(t)
+    direct, rays = lights.next_event(pos.astype(np.float32), ns.astype(np.float32), rng, caster, mis=False,
+                                     lift=lift, geometric=geometric, bsdf=bsdf)
+    if not scene.lamps.empty:
+        lamp, shadow = scene.lamps.direct_light(pos, ns, rng, caster, lift=lift, geometric=geometric,
+                                                transparency=lights.transparency, bsdf=bsdf)
+        direct, rays = direct + lamp, rays + shadow
+    if environment is not None:    # the world's direct light at the hit, by world sampling
+        env, shadow = world_light.next_event(
+            environment, pos.astype(np.float32), ns.astype(np.float32), rng, caster, lift.astype(np.float32),
+            geometric=None if geometric is None else geometric.astype(np.float32), mis=False,
+            transparency=lights.transparency, bsdf=bsdf)
+        direct, rays = direct + env, rays + shadow
+    return direct, rays
 
 
 def _glossy_hits(scene, glossy, tri, bu, bv, shading, geometric, towards):
