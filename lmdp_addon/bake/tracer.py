@@ -69,7 +69,7 @@ from .. import world as world_light
 from ..bsdf import GlossyRows, VertexBSDF
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
-from ..sampling import dot, rows, set_rows
+from ..sampling import cosine_directions, dot, rows, set_rows, spherical_triangle_solid_angle, table_index
 from ..transparency import Transparency
 from .clamp import clamp_light
 from .content import BakeContent, times_color
@@ -132,7 +132,7 @@ class IndirectTracer:
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
                  guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None,
-                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0):
+                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0, light_share=0.0):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -200,6 +200,13 @@ class IndirectTracer:
         self.glossy_limit = int(glossy_bounces) if glossy_bounces >= 0 else self.total_limit
         if self.glossy is None:
             self.total_limit = self.max_bounces
+        self.light_share = float(light_share) if (mode in ("UNGUIDED", "GUIDED") and self.clamp is None
+                                                  and self.transparency is None and not self.lights.empty) else 0.0
+        if self.light_share > 0:
+            ok = (scene.triangle_geometry()[1] > 0) & ~scene.is_emissive()
+            if self.glossy is not None:
+                ok &= ~self.glossy
+            self.connectable = ok
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None, control_out=None,
@@ -255,6 +262,10 @@ class IndirectTracer:
             self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
         if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
             _to_cycles(rho0, idx, _cosine_ratio(w))
+        px_area = None
+        if self.light_share > 0:
+            self._light_connections(L, idx, pos, nrm, gnrm, lift, states, rng, stats)
+            px_area = np.full(n, np.inf)
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
@@ -274,6 +285,13 @@ class IndirectTracer:
                     beta = beta * tint
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
+            if px_area is not None and bounce == 1:   # x0's density of the hit y_1 per unit area
+                t_h = np.take(tri, h)
+                cos_h = np.abs(dot(rows(self.face_normals, t_h), rows(d, h))).astype(np.float64)
+                wk = np.take(w, h).astype(np.float64)
+                p_dir = np.maximum(np.take(cos_prev, h), 0.0) * INV_PI / np.where(wk > 0, wk, 1.0)
+                r = np.take(dist, h).astype(np.float64)
+                px_area[idx[h]] = np.where(self.connectable[t_h] & (wk > 0), p_dir * cos_h / (r * r), np.inf)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
                                   bounce=bounce, rho0=rho0, stats=stats)
@@ -330,7 +348,8 @@ class IndirectTracer:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
-            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows)
+            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows,
+                                          px=np.take(px_area, idx) if (px_area is not None and bounce == 1) else None)
             direct = _summed(samples)
             self._add_light_samples(L, idx, beta, samples, direct, bounce, rho0, stats)
             if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
@@ -398,7 +417,84 @@ class IndirectTracer:
             colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
         return colour
 
-    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None):
+    def _light_connections(self, L, idx, pos, nrm, gnrm, lift, states, rng, stats):
+        """Light tracing to the texel points: per path (share s) one point l on the emitters (∝
+        power), a cosine direction from it, its first hit y', and a shadow ray y' -> x0; the
+        light ρ(y') L_e G(x0, y') / (π p_A(l) p_side) with the weight w_L(y', l) s P_lt / (P_x + s P_lt)."""
+        E = self.lights
+        k = len(idx)
+        u = rng.random((k, 5))
+        take = np.flatnonzero(u[:, 4] < self.light_share)
+        if len(take) == 0:
+            return
+        u = u[take]
+        e = table_index(E.power_cdf32, u[:, 0].astype(np.float32))
+        sq = np.sqrt(u[:, 1]); b = sq * u[:, 2]; a = sq - b
+        l = E.v0[e] + a[:, None] * E.e1[e] + b[:, None] * E.e2[e]
+        n_l = E.normals[e].copy()
+        two = E.two_sided[e]
+        flip = two & (u[:, 3] < 0.5)
+        n_l[flip] *= -1
+        p_side = np.where(two, 0.5, 1.0)
+        ut = rng.random((len(take), 2))
+        d = cosine_directions(n_l.astype(np.float32), ut, stratified=False)
+        origin = (l + self.caster.offset(E.triangles[e])[:, None] * n_l).astype(np.float32)
+        tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
+        stats.rays += len(take)
+        hit = np.flatnonzero((tri >= 0) & self.connectable[np.maximum(tri, 0)])
+        if len(hit) == 0:
+            return
+        t = tri[hit]
+        y = (rows(self.corner0, t) + rows(self.edge1, t) * bu[hit, None] + rows(self.edge2, t) * bv[hit, None])
+        dh = d[hit]
+        ng = rows(self.face_normals, t)
+        front = dot(ng, dh) < 0
+        np.negative(ng, out=ng, where=~front[:, None])      # the lit side
+        rows_x = take[hit]
+        ox = rows(pos, rows_x) + np.take(lift, rows_x)[:, None] * rows(gnrm, rows_x)
+        to = y - ox
+        r2 = dot(to, to).astype(np.float64)
+        r = np.sqrt(r2)
+        om = (to / np.where(r > 0, r, 1.0)[:, None].astype(np.float32)).astype(np.float32)
+        cos_x = dot(rows(nrm, rows_x), om)
+        cos_yx = -dot(ng, om)
+        ok = np.flatnonzero((cos_x > 0) & (dot(rows(gnrm, rows_x), om) > 0) & (cos_yx > 0) & (r > 0))
+        if len(ok) == 0:
+            return
+        tmax = self.caster.shadow_distance(r[ok], t[ok])
+        stats.shadow_rays += len(ok)
+        vis = ok[~self.caster.occluded(rows(ox, ok), rows(om, ok), tmax)]
+        if len(vis) == 0:
+            return
+        ev, tv = e[hit][vis], t[vis]
+        # the other strategies' densities of this path (x0 -> y' -> l)
+        ns = self.scene.shading_normals(tv, bu[hit][vis], bv[hit][vis], side=front[vis]) if self.smooth else ng[vis]
+        dly = -dh[vis]                                       # y' -> l
+        q = np.maximum(dot(ns, dly), 0.0).astype(np.float64) * INV_PI
+        q_g = dot(ng[vis], dly).astype(np.float64) * INV_PI
+        r_ly = dist[hit][vis].astype(np.float64)
+        cos_l = np.abs(dot(n_l[hit][vis].astype(np.float32), dh[vis])).astype(np.float64)
+        p_light = E.pdf_area32[ev].astype(np.float64) * r_ly * r_ly / np.maximum(cos_l, 1e-12)
+        yo = (y[vis] + np.take(self.offsets, tv)[:, None] * ng[vis]).astype(np.float32)
+        o3 = tuple(np.ascontiguousarray(yo[:, i]) for i in range(3))
+        near = np.flatnonzero(E.near(o3, ev))
+        if len(near):
+            omega = spherical_triangle_solid_angle(E.corners64[ev[near]] - yo[near, None, :].astype(np.float64))
+            p_light[near] = E.power_prob[ev[near]] / np.maximum(omega, 1e-300)
+        w_light = p_light / (p_light + q)
+        p_dir = self.directions.density(rows(nrm, rows_x[vis]), np.take(states, rows_x[vis]), om[vis], True)
+        px = p_dir * cos_yx[vis] / r2[vis]
+        s = self.light_share
+        s_lt = s * E.pdf_area32[ev] * p_side[hit][vis] * q_g           # s P_lt / (the shared factors)
+        weight = w_light * s_lt / (px * p_light + s_lt)
+        ratio = np.where(q_g > 0, q * INV_PI / np.maximum(q_g, 1e-30) * np.pi, 0.0)   # shading / geometric cosine at y'
+        albedo = self.scene.albedo_at(tv, bu[hit][vis], bv[hit][vis]) if self.textured else rows(self.albedo, tv)
+        g = cos_x[vis] * cos_yx[vis] / r2[vis]
+        value = (g * weight * ratio / (s * np.pi * E.pdf_area32[ev] * p_side[hit][vis]))[:, None] * albedo \
+            * E.radiance32[ev]
+        self._add(L, idx[rows_x[vis]], value.astype(np.float32), 1, None, stats)
+
+    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, px=None):
         """The light-sampling half of the direct light D(y) at the points ``pos`` (shading
         normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``), one (k, 3) estimate per light
         kind: the emitters' MIS estimate (``lights``), Blender's lights (``lamps``; MIS-weighted
@@ -406,8 +502,17 @@ class IndirectTracer:
         random numbers (D(y) is their sum, :func:`_summed`); rows of ``glossy_rows``
         (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density."""
         geometric = gnrm if self.smooth else None
+        hook = None
+        if px is not None:
+            E, s = self.lights, self.light_share
+
+            def share_of_light_sample(vis, ev, p_light, q_g):
+                s_lt = s * E.pdf_area32[ev] * np.where(E.two_sided[ev], 0.5, 1.0) * np.maximum(q_g, 0.0)
+                pxv = np.take(px, vis)
+                return np.where(np.isfinite(pxv), pxv * p_light / (pxv * p_light + s_lt), 1.0).astype(np.float32)
+            hook = share_of_light_sample
         direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric,
-                                                     bsdf=glossy_rows)
+                                                     bsdf=glossy_rows, mis_hook=hook)
         stats.shadow_rays += shadow_rays
         samples = [direct]
         if not self.lamps.empty:
