@@ -236,7 +236,7 @@ class EmitterSampler:
         if mis_hook is not None:   # a third strategy for these paths (light tracing): its share
             gv = normals if geometric is None else geometric
             q_g = dot3(tuple(np.take(gv[:, i], vis) for i in range(3)), tuple(np.take(dl[:, i], vis) for i in range(3)))
-            weight = weight * mis_hook(vis, ev, p_light, q_g * np.float32(INV_PI))
+            weight = weight * mis_hook(vis, ev, p_light, q, q_g * np.float32(INV_PI))
         if passed is not None and passed.ndim == 1:
             weight = weight * passed
         set_rows(out, vis, rows(self.radiance32, ev) * weight[:, None])
@@ -294,7 +294,7 @@ class EmitterSampler:
                                lift=lift, geometric=None if geometric is None
                                else np.ascontiguousarray(geometric, dtype=np.float32))
 
-    def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals, pdf_from=None):
+    def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals, pdf_from=None, mis_hook=None):
         """BSDF-sampling half of the MIS estimate for the rays ``hits (k,)`` of a wavefront (from
         a vertex y_k, k >= 1) that hit geometry: ``(lit, values)``, the rays among them that hit
         an emitter's emitting side and their ``L_e · q / (q + p_L)`` (k_lit, 3), to be multiplied
@@ -325,4 +325,7 @@ class EmitterSampler:
         if pdf_from is not None:
             p = pdf_from[ray]
             q = np.where(np.isnan(p), q, p).astype(q.dtype, copy=False)
-        return ray, rows(self.triangle_emission32, t) * (q / (q + p_light))[:, None]
+        weight = q / (q + p_light)
+        if mis_hook is not None:
+            weight = weight * mis_hook(ray, e, p_light, q)
+        return ray, rows(self.triangle_emission32, t) * weight[:, None]
