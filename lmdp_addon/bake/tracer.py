@@ -92,6 +92,8 @@ class TraceStats:
     gathered: int = 0         #: FINAL_GATHER paths ended by the solution at y_1
     gather_fallback: int = 0  #: FINAL_GATHER paths continued by path tracing (no state near y_1)
     glossy_vertices: int = 0  #: vertices on surfaces with microfacet lobes (BSDF sampling)
+    light_vertices: int = 0   #: light vertices traced for light connections
+    connections: int = 0      #: light connections that reached their light vertex (shadow ray clear)
 
     def add(self, other):
         for name in self.__dataclass_fields__:
@@ -300,7 +302,8 @@ class IndirectTracer:
                 wk = np.take(w, hs).astype(np.float64)
                 p_dir = np.maximum(np.take(cos_prev, hs), 0.0) * INV_PI / np.where(wk > 0, wk, 1.0)
                 r = np.take(dist, hs).astype(np.float64)
-                px_area[idx[hs]] = np.where(self.connectable[t_h] & (wk > 0), p_dir * cos_h / (r * r), np.inf)
+                px_area[idx[hs]] = np.where(self.connectable[t_h] & (wk > 0) & (r > 0),
+                                            p_dir * cos_h / np.where(r > 0, r * r, 1.0), np.inf)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
                                   bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook)
@@ -460,6 +463,7 @@ class IndirectTracer:
         tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
         stats.rays += len(take)
         hit = np.flatnonzero((tri >= 0) & self.connectable[np.maximum(tri, 0)])
+        stats.light_vertices += len(hit)
         if len(hit) == 0:
             return None
         t, e, d, dist, bu, bv, n_l, p_side = tri[hit], e[hit], d[hit], dist[hit], bu[hit], bv[hit], n_l[hit], p_side[hit]
@@ -499,8 +503,7 @@ class IndirectTracer:
         def share(ray, ev, p_light, q):
             pxv = np.take(px_from, ray)
             s_lt = s * E.pdf_area32[ev] * np.where(E.two_sided[ev], 0.5, 1.0) * np.take(q_g, ray)
-            a = pxv * (p_light + q)
-            return np.where(np.isfinite(pxv), a / (a + s_lt), 1.0)
+            return _share_kept(pxv * (p_light + q), s_lt)
         return share
 
     def _connect(self, L, lt, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, stats):
@@ -527,13 +530,15 @@ class IndirectTracer:
         tmax = self.caster.shadow_distance(r[ok], np.take(lt["tri"], j[ok]))
         stats.shadow_rays += len(ok)
         vis = ok[~self.caster.occluded(rows(ox, ok), rows(om, ok), tmax)]
+        stats.connections += len(vis)
         if len(vis) == 0:
             return
         jv, hv = j[vis], has[vis]
         p_dir = self.directions.density(rows(nrm, hv), np.take(states, hv), rows(om, vis), first)
         px = p_dir * cos_yx[vis] / r2[vis]
         s_lt = np.take(lt["s_lt"], jv)
-        weight = s_lt / (px * (np.take(lt["p_light"], jv) + np.take(lt["q"], jv)) + s_lt)
+        den = px * (np.take(lt["p_light"], jv) + np.take(lt["q"], jv)) + s_lt
+        weight = np.where(den > 0, s_lt / np.where(den > 0, den, 1.0), 0.0)
         g = cos_x[vis] * cos_yx[vis] / r2[vis]
         value = (g * weight).astype(np.float32)[:, None] * rows(lt["base"], jv)
         if beta is not None:
@@ -555,8 +560,7 @@ class IndirectTracer:
             def share_of_light_sample(vis, ev, p_light, q, q_g):
                 s_lt = s * E.pdf_area32[ev] * np.where(E.two_sided[ev], 0.5, 1.0) * np.maximum(q_g, 0.0)
                 pxv = np.take(px, vis)
-                a = pxv * (p_light + q)
-                return np.where(np.isfinite(pxv), a / (a + s_lt), 1.0).astype(np.float32)
+                return _share_kept(pxv * (p_light + q), s_lt).astype(np.float32)
             hook = share_of_light_sample
         direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric,
                                                      bsdf=glossy_rows, mis_hook=hook)
@@ -823,6 +827,15 @@ class IndirectTracer:
         lobe = np.zeros(len(d), np.int16)
         lobe[g] = microfacet
         return d, w, beta, q, lobe
+
+
+def _share_kept(a, s_lt):
+    """The balance-heuristic share ``a / (a + s P_lt)`` that a light sample or an emitter hit keeps
+    beside the light connections (``a = px (p_L + q)``; 1 where a is infinite, i.e. the vertex
+    was not joined, or where both are 0)."""
+    den = a + s_lt
+    ok = np.isfinite(a) & (den > 0)
+    return np.where(ok, a / np.where(ok, den, 1.0), 1.0)
 
 
 def _cosine_ratio(w):
