@@ -37,6 +37,13 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
   'INDIRECT'}) and / or multiplies each path by x0's diffuse colour (Cycles' 'COLOR');
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
+* **light connections** (``light_share`` s > 0, UNGUIDED and GUIDED without the clamp or
+  transparency): with probability s a path also traces one light vertex y' (a point on the
+  emitters ∝ power, a cosine direction from it, its first hit, :meth:`_light_subpaths`), and
+  every Lambertian eye vertex is joined to it by a shadow ray (:meth:`_connect`); the light
+  sample at y', the BSDF ray from y' that hits the emitter and the connection are weighted by the
+  balance heuristic over the three (``px p_L / D``, ``px q / D``, ``s P_lt / D``; docs/design.md
+  "Light connections"), so the estimate stays unbiased;
 * ``clamp`` (:mod:`~lmdp_addon.bake.clamp`): Cycles' sample clamp of every contribution
   (:meth:`IndirectTracer._add`), and then Cycles' Russian roulette instead (from y_2, survival
   ``min(1, sqrt(max_c T_c))`` of Cycles' throughput T = ρ(x0) β w), so that the clamped
@@ -126,6 +133,7 @@ class IndirectTracer:
     glossy_bounces, total_bounces  on glossy scenes, Cycles' Glossy and Max bounces: a path keeps
                     at most ``max_bounces`` diffuse, ``glossy_bounces`` glossy and
                     ``total_bounces`` bounces in all (-1: no separate limit, ``max_bounces``)
+    light_share     s: the share of paths with a light vertex joined to their eye vertices (0: off)
     clamp           :class:`~lmdp_addon.bake.clamp.SampleClamp`: Cycles' direct / indirect sample
                     clamp on every light contribution (:meth:`_add`), with Cycles' Russian
                     roulette (:meth:`_cycles_roulette`) after ``min_light_bounces`` (Cycles' Min
