@@ -76,13 +76,15 @@ from .. import world as world_light
 from ..bsdf import GlossyRows, VertexBSDF
 from ..lights import EmitterSampler
 from ..raycast import RayCaster
-from ..sampling import cosine_directions, dot, rows, set_rows, spherical_triangle_solid_angle, table_index
+from ..sampling import dot, rows, set_rows
 from ..transparency import Transparency
+from . import connections
 from .clamp import clamp_light
 from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
+SECOND_AT_EVERY_VERTEX = False
 INV_PI = 1.0 / np.pi
 
 
@@ -272,13 +274,15 @@ class IndirectTracer:
             self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
         if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
             _to_cycles(rho0, idx, _cosine_ratio(w))
-        px_area = lt = lt_flag = None
+        lv = joins = None      # light connections (``connections``)
         if self.light_share > 0:
-            lt = self._light_subpaths(n, rng, stats)
-            px_area = np.full(n, np.inf)
-            lt_flag = np.ones(n, bool)
-            if lt is not None:
-                self._connect(L, lt, idx, pos, nrm, gnrm, lift, None, states, True, 0, stats)
+            lv = connections.LightVertices(self, n, rng, stats)
+            joins = connections.JoinState(n, self.light_share, self.lights)
+            second = 2 <= min(self.total_limit, self.max_bounces)
+            connections.connect(self, L, lv, joins, idx, pos, nrm, gnrm, lift, None, states, True, 0,
+                                np.full(n, second), stats)
+            joins.join1[idx] = True
+            joins.join2[idx] = second
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
@@ -299,19 +303,9 @@ class IndirectTracer:
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
             hook = None
-            if px_area is not None:   # the last vertex's density of the hit y_bounce per unit area
-                px_from = np.take(px_area, idx)      # of y_{bounce-1}, for its rays' emitter hits
-                if np.any(np.isfinite(px_from)):
-                    hook = self._emission_share(px_from, gnrm, d)
-                px_area[idx] = np.inf
-                hs = h[np.take(lt_flag, np.take(idx, h))]
-                t_h = np.take(tri, hs)
-                cos_h = np.abs(dot(rows(self.face_normals, t_h), rows(d, hs))).astype(np.float64)
-                wk = np.take(w, hs).astype(np.float64)
-                p_dir = np.maximum(np.take(cos_prev, hs), 0.0) * INV_PI / np.where(wk > 0, wk, 1.0)
-                r = np.take(dist, hs).astype(np.float64)
-                px_area[idx[hs]] = np.where(self.connectable[t_h] & (wk > 0) & (r > 0),
-                                            p_dir * cos_h / np.where(r > 0, r * r, 1.0), np.inf)
+            if joins is not None:   # the emitter hits' share (of the vertex left), then move on
+                hook = joins.emission_hook(idx, nrm, gnrm, d)
+                joins.arrive(self, idx, h, d, w, cos_prev, tri, dist, gnrm)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
                                   bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook)
@@ -369,20 +363,18 @@ class IndirectTracer:
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
             samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows,
-                                          px=np.take(px_area, idx) if px_area is not None else None)
+                                          hook=None if joins is None else joins.hook(idx, nrm))
             direct = _summed(samples)
             self._add_light_samples(L, idx, beta, samples, direct, bounce, rho0, stats)
-            if lt_flag is not None:    # light vertices joined to y_bounce (a vertex bounce + 1)
-                lt_flag[idx] = False
-                if bounce + 1 <= self.total_limit:
-                    eligible = np.ones(len(idx), bool) if n_glossy is None else (bounce + 1 - n_glossy) <= self.max_bounces
-                    if glossy_rows is not None:
-                        eligible &= ~glossy_rows.mask
-                    e = np.flatnonzero(eligible)
-                    lt_flag[idx[e]] = True
-                    if lt is not None and len(e):
-                        self._connect(L, lt, idx[e], rows(pos, e), rows(nrm, e), rows(gnrm, e), np.take(lift, e),
-                                      rows(beta, e), np.take(vstates, e), False, bounce, stats)
+            if joins is not None:    # light vertices joined to y_bounce (vertices bounce + 1, + 2)
+                e1, e2 = self._joinable(bounce, n_glossy, glossy_rows, len(idx))
+                joins.join1[idx] = e1
+                joins.join2[idx] = e2
+                e = np.flatnonzero(e1)
+                if len(e):
+                    connections.connect(self, L, lv, joins, idx[e], rows(pos, e), rows(nrm, e), rows(gnrm, e),
+                                        np.take(lift, e), rows(beta, e), np.take(vstates, e), False, bounce,
+                                        e2[e], stats)
             if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
                 control_out[idx] = beta * (direct + z_ind)
                 if first_hit_only:
@@ -448,112 +440,22 @@ class IndirectTracer:
             colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
         return colour
 
-    def _light_subpaths(self, n, rng, stats):
-        """One light vertex per path (share s): a point l on the emitters (∝ power), a cosine
-        direction from its emitting side, and the first hit y' of that ray on a connectable
-        (Lambertian, non-emitting) surface, with what its connections need (:meth:`_connect`);
-        None when no path has one."""
-        E = self.lights
-        u = rng.random((n, 6))
-        take = np.flatnonzero(u[:, 5] < self.light_share)
-        if len(take) == 0:
-            return None
-        u = u[take]
-        e = table_index(E.power_cdf32, u[:, 0].astype(np.float32))
-        sq = np.sqrt(u[:, 1]); b = sq * u[:, 2]; a = sq - b
-        l = E.v0[e] + a[:, None] * E.e1[e] + b[:, None] * E.e2[e]
-        n_l = E.normals[e].copy()
-        two = E.two_sided[e]
-        n_l[two & (u[:, 3] < 0.5)] *= -1
-        p_side = np.where(two, 0.5, 1.0)
-        d = cosine_directions(n_l.astype(np.float32), rng.random((len(take), 2)), stratified=False)
-        origin = (l + self.caster.offset(E.triangles[e])[:, None] * n_l).astype(np.float32)
-        tri, dist, bu, bv = self.caster.intersect(origin, d, barycentrics=True)
-        stats.rays += len(take)
-        hit = np.flatnonzero((tri >= 0) & self.connectable[np.maximum(tri, 0)])
-        stats.light_vertices += len(hit)
-        if len(hit) == 0:
-            return None
-        t, e, d, dist, bu, bv, n_l, p_side = tri[hit], e[hit], d[hit], dist[hit], bu[hit], bv[hit], n_l[hit], p_side[hit]
-        y = (rows(self.corner0, t) + rows(self.edge1, t) * bu[:, None] + rows(self.edge2, t) * bv[:, None])
-        ng = rows(self.face_normals, t)
-        front = dot(ng, d) < 0
-        np.negative(ng, out=ng, where=~front[:, None])      # the lit side
-        ns = self.scene.shading_normals(t, bu, bv, side=front) if self.smooth else ng
-        q = np.maximum(dot(ns, -d), 0.0).astype(np.float64) * INV_PI
-        q_g = dot(ng, -d).astype(np.float64) * INV_PI
-        r_ly = dist.astype(np.float64)
-        cos_l = np.abs(dot(n_l.astype(np.float32), d)).astype(np.float64)
-        p_light = E.pdf_area32[e].astype(np.float64) * r_ly * r_ly / np.maximum(cos_l, 1e-12)
-        yo = (y + np.take(self.offsets, t)[:, None] * ng).astype(np.float32)
-        o3 = tuple(np.ascontiguousarray(yo[:, i]) for i in range(3))
-        near = np.flatnonzero(E.near(o3, e))
-        if len(near):
-            omega = spherical_triangle_solid_angle(E.corners64[e[near]] - yo[near, None, :].astype(np.float64))
-            p_light[near] = E.power_prob[e[near]] / np.maximum(omega, 1e-300)
-        s = self.light_share
-        albedo = self.scene.albedo_at(t, bu, bv) if self.textured else rows(self.albedo, t)
-        ratio = np.where(q_g > 0, q / np.maximum(q_g, 1e-30), 0.0)   # shading / geometric cosine at y'
-        base = (ratio / (s * np.pi * E.pdf_area32[e] * p_side))[:, None] * albedo * E.radiance32[e]
-        path = np.full(n, -1, np.int64)
-        path[take[hit]] = np.arange(len(hit))
-        return dict(path=path, y=y, ng=ng, tri=t, q=q, p_light=p_light,
-                    s_lt=s * E.pdf_area32[e] * p_side * q_g, base=base.astype(np.float32))
+    def _joinable(self, bounce, n_glossy, glossy_rows, k):
+        """(k,) bool pairs: the vertices y_bounce that may be joined to a light vertex y'_1 (a
+        path vertex bounce + 1) and to y'_2 (bounce + 2): Lambertian, within the bounce limits."""
+        out = []
+        for extra in (1, 2) if SECOND_AT_EVERY_VERTEX else (1,):
+            ok = np.full(k, bounce + extra <= self.total_limit)
+            if n_glossy is not None:
+                ok &= (bounce + extra - n_glossy) <= self.max_bounces
+            if glossy_rows is not None:
+                ok &= ~glossy_rows.mask
+            out.append(ok)
+        if len(out) == 1:
+            out.append(np.zeros(k, bool))
+        return out
 
-    def _emission_share(self, px_from, gnrm, d):
-        """The factor on the emitter hits' MIS weight of rays ``d`` left from vertices y (their
-        geometric normals ``gnrm``) that were hit from a vertex joined to light vertices
-        (``px_from``: that vertex's density of y per unit area, inf: not joined): the
-        three-strategy balance heuristic ``px q / (px (q + p_L) + s P_lt)``."""
-        E, s = self.lights, self.light_share
-        q_g = np.maximum(dot(gnrm, d), 0.0).astype(np.float64) * INV_PI
-
-        def share(ray, ev, p_light, q):
-            pxv = np.take(px_from, ray)
-            s_lt = s * E.pdf_area32[ev] * np.where(E.two_sided[ev], 0.5, 1.0) * np.take(q_g, ray)
-            return _share_kept(pxv * (p_light + q), s_lt)
-        return share
-
-    def _connect(self, L, lt, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, stats):
-        """Joins the vertices ``pos`` of the paths ``idx`` (throughput ``beta``, None: 1) to their
-        paths' light vertex y' (:meth:`_light_subpaths`) by a shadow ray: the light
-        ``β G(y, y') ρ(y') L_e / (s π p_A p_side)`` of a vertex ``bounce + 1``, weighted by the
-        balance heuristic over the three strategies of y -> y' -> l."""
-        j = np.take(lt["path"], idx)
-        has = np.flatnonzero(j >= 0)
-        if len(has) == 0:
-            return
-        j = j[has]
-        y = rows(lt["y"], j)
-        ox = rows(pos, has) + np.take(lift, has)[:, None] * rows(gnrm, has)
-        to = y - ox
-        r2 = dot(to, to).astype(np.float64)
-        r = np.sqrt(r2)
-        om = (to / np.where(r > 0, r, 1.0)[:, None].astype(np.float32)).astype(np.float32)
-        cos_x = dot(rows(nrm, has), om)
-        cos_yx = -dot(rows(lt["ng"], j), om)
-        ok = np.flatnonzero((cos_x > 0) & (dot(rows(gnrm, has), om) > 0) & (cos_yx > 0) & (r > 0))
-        if len(ok) == 0:
-            return
-        tmax = self.caster.shadow_distance(r[ok], np.take(lt["tri"], j[ok]))
-        stats.shadow_rays += len(ok)
-        vis = ok[~self.caster.occluded(rows(ox, ok), rows(om, ok), tmax)]
-        stats.connections += len(vis)
-        if len(vis) == 0:
-            return
-        jv, hv = j[vis], has[vis]
-        p_dir = self.directions.density(rows(nrm, hv), np.take(states, hv), rows(om, vis), first)
-        px = p_dir * cos_yx[vis] / r2[vis]
-        s_lt = np.take(lt["s_lt"], jv)
-        den = px * (np.take(lt["p_light"], jv) + np.take(lt["q"], jv)) + s_lt
-        weight = np.where(den > 0, s_lt / np.where(den > 0, den, 1.0), 0.0)
-        g = cos_x[vis] * cos_yx[vis] / r2[vis]
-        value = (g * weight).astype(np.float32)[:, None] * rows(lt["base"], jv)
-        if beta is not None:
-            value = value * rows(beta, hv)
-        self._add(L, idx[hv], value, bounce + 1, None, stats)
-
-    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, px=None):
+    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, hook=None):
         """The light-sampling half of the direct light D(y) at the points ``pos`` (shading
         normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``), one (k, 3) estimate per light
         kind: the emitters' MIS estimate (``lights``), Blender's lights (``lamps``; MIS-weighted
@@ -561,15 +463,6 @@ class IndirectTracer:
         random numbers (D(y) is their sum, :func:`_summed`); rows of ``glossy_rows``
         (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density."""
         geometric = gnrm if self.smooth else None
-        hook = None
-        if px is not None:
-            E, s = self.lights, self.light_share
-
-            def share_of_light_sample(vis, ev, p_light, q, q_g):
-                s_lt = s * E.pdf_area32[ev] * np.where(E.two_sided[ev], 0.5, 1.0) * np.maximum(q_g, 0.0)
-                pxv = np.take(px, vis)
-                return _share_kept(pxv * (p_light + q), s_lt).astype(np.float32)
-            hook = share_of_light_sample
         direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric,
                                                      bsdf=glossy_rows, mis_hook=hook)
         stats.shadow_rays += shadow_rays
@@ -835,15 +728,6 @@ class IndirectTracer:
         lobe = np.zeros(len(d), np.int16)
         lobe[g] = microfacet
         return d, w, beta, q, lobe
-
-
-def _share_kept(a, s_lt):
-    """The balance-heuristic share ``a / (a + s P_lt)`` that a light sample or an emitter hit keeps
-    beside the light connections (``a = px (p_L + q)``; 1 where a is infinite, i.e. the vertex
-    was not joined, or where both are 0)."""
-    den = a + s_lt
-    ok = np.isfinite(a) & (den > 0)
-    return np.where(ok, a / np.where(ok, den, 1.0), 1.0)
 
 
 def _cosine_ratio(w):
