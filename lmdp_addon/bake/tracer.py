@@ -84,7 +84,6 @@ from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
-SECOND_AT_EVERY_VERTEX = False
 INV_PI = 1.0 / np.pi
 
 
@@ -278,11 +277,8 @@ class IndirectTracer:
         if self.light_share > 0:
             lv = connections.LightVertices(self, n, rng, stats)
             joins = connections.JoinState(n, self.light_share, self.lights)
-            second = 2 <= min(self.total_limit, self.max_bounces)
-            connections.connect(self, L, lv, joins, idx, pos, nrm, gnrm, lift, None, states, True, 0,
-                                np.full(n, second), stats)
-            joins.join1[idx] = True
-            joins.join2[idx] = second
+            connections.connect(self, L, lv, idx, pos, nrm, gnrm, lift, None, states, True, 0, stats)
+            joins.joined[idx] = True
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
@@ -304,8 +300,8 @@ class IndirectTracer:
             h = np.flatnonzero(tri >= 0)
             hook = None
             if joins is not None:   # the emitter hits' share (of the vertex left), then move on
-                hook = joins.emission_hook(idx, nrm, gnrm, d)
-                joins.arrive(self, idx, h, d, w, cos_prev, tri, dist, gnrm)
+                hook = joins.emission_hook(idx, gnrm, d)
+                joins.arrive(self, idx, h, d, w, cos_prev, tri, dist)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
                                   bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook)
@@ -363,18 +359,16 @@ class IndirectTracer:
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
             samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows,
-                                          hook=None if joins is None else joins.hook(idx, nrm))
+                                          hook=None if joins is None else joins.hook(idx))
             direct = _summed(samples)
             self._add_light_samples(L, idx, beta, samples, direct, bounce, rho0, stats)
-            if joins is not None:    # light vertices joined to y_bounce (vertices bounce + 1, + 2)
-                e1, e2 = self._joinable(bounce, n_glossy, glossy_rows, len(idx))
-                joins.join1[idx] = e1
-                joins.join2[idx] = e2
-                e = np.flatnonzero(e1)
+            if joins is not None:    # light vertices joined to y_bounce (a vertex bounce + 1)
+                eligible = self._joinable(bounce, n_glossy, glossy_rows, len(idx))
+                joins.joined[idx] = eligible
+                e = np.flatnonzero(eligible)
                 if len(e):
-                    connections.connect(self, L, lv, joins, idx[e], rows(pos, e), rows(nrm, e), rows(gnrm, e),
-                                        np.take(lift, e), rows(beta, e), np.take(vstates, e), False, bounce,
-                                        e2[e], stats)
+                    connections.connect(self, L, lv, idx[e], rows(pos, e), rows(nrm, e), rows(gnrm, e),
+                                        np.take(lift, e), rows(beta, e), np.take(vstates, e), False, bounce, stats)
             if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
                 control_out[idx] = beta * (direct + z_ind)
                 if first_hit_only:
@@ -441,19 +435,14 @@ class IndirectTracer:
         return colour
 
     def _joinable(self, bounce, n_glossy, glossy_rows, k):
-        """(k,) bool pairs: the vertices y_bounce that may be joined to a light vertex y'_1 (a
-        path vertex bounce + 1) and to y'_2 (bounce + 2): Lambertian, within the bounce limits."""
-        out = []
-        for extra in (1, 2) if SECOND_AT_EVERY_VERTEX else (1,):
-            ok = np.full(k, bounce + extra <= self.total_limit)
-            if n_glossy is not None:
-                ok &= (bounce + extra - n_glossy) <= self.max_bounces
-            if glossy_rows is not None:
-                ok &= ~glossy_rows.mask
-            out.append(ok)
-        if len(out) == 1:
-            out.append(np.zeros(k, bool))
-        return out
+        """(k,) bool: the vertices y_bounce that may be joined to a light vertex (a path vertex
+        bounce + 1): Lambertian and within the bounce limits."""
+        ok = np.full(k, bounce + 1 <= self.total_limit)
+        if n_glossy is not None:
+            ok &= (bounce + 1 - n_glossy) <= self.max_bounces
+        if glossy_rows is not None:
+            ok &= ~glossy_rows.mask
+        return ok
 
     def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, hook=None):
         """The light-sampling half of the direct light D(y) at the points ``pos`` (shading
