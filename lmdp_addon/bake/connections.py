@@ -229,3 +229,22 @@ def connect(tr, L, lv, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, s
     if beta is not None:
         value = value * rows(beta, hv)
     tr._add(L, idx[hv], value, bounce + 1, None, stats)
+
+
+def off_reason(scene, settings):
+    """Why a bake of ``scene`` with ``settings`` traces no light connections although
+    ``light_share`` > 0 in UNGUIDED or GUIDED (a sentence for the report), or None (they are on,
+    or not asked for). The tracer's own conditions (``IndirectTracer.light_share``)."""
+    from ..transparency import Transparency
+    from .clamp import SampleClamp
+    if settings.light_share <= 0 or settings.bake_mode not in ("UNGUIDED", "GUIDED"):
+        return None
+    clamp = SampleClamp.from_settings(settings)
+    if clamp is not None and clamp.active:
+        return ("light connections off: a sample clamp is on (Cycles clamps its own path sampling; "
+                "Clamp Direct / Indirect 0 turns them on)")
+    if Transparency.of(scene) is not None:
+        return "light connections off: the scene has transparent (alpha) materials"
+    if not scene.is_emissive().any():
+        return "light connections off: no emissive mesh (lamps and the world keep their own sampling)"
+    return None
