@@ -138,10 +138,11 @@ class JoinState:
 
     def _kept(self, pe, joined_prev, conn, p_light, q, s_lt):
         """(A + B) / (A + B + C) (module docstring; 1 where C does not count)."""
-        a = pe * (p_light + q)
         c = np.where(joined_prev & conn, s_lt, 0.0)
+        joined = (c > 0) & np.isfinite(pe)
+        a = np.where(joined, pe, 0.0) * (p_light + q)
         den = a + c
-        ok = np.isfinite(a) & (c > 0) & (den > 0)
+        ok = joined & (den > 0)
         return np.where(ok, a / np.where(ok, den, 1.0), 1.0)
 
     def _s_lt(self, ev, q_g):

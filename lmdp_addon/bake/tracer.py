@@ -84,6 +84,7 @@ from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
+CONNECT_UP_TO = 1 << 30
 INV_PI = 1.0 / np.pi
 
 
@@ -212,7 +213,8 @@ class IndirectTracer:
         if self.glossy is None:
             self.total_limit = self.max_bounces
         self.light_share = float(light_share) if (mode in ("UNGUIDED", "GUIDED") and self.clamp is None
-                                                  and self.transparency is None and not self.lights.empty) else 0.0
+                                                  and self.transparency is None and not self.lights.empty
+                                                  and self.max_bounces >= 1) else 0.0
         if self.light_share > 0:
             ok = (scene.triangle_geometry()[1] > 0) & ~scene.is_emissive()
             if self.glossy is not None:
@@ -437,7 +439,7 @@ class IndirectTracer:
     def _joinable(self, bounce, n_glossy, glossy_rows, k):
         """(k,) bool: the vertices y_bounce that may be joined to a light vertex (a path vertex
         bounce + 1): Lambertian and within the bounce limits."""
-        ok = np.full(k, bounce + 1 <= self.total_limit)
+        ok = np.full(k, bounce + 1 <= self.total_limit and bounce <= CONNECT_UP_TO)
         if n_glossy is not None:
             ok &= (bounce + 1 - n_glossy) <= self.max_bounces
         if glossy_rows is not None:
