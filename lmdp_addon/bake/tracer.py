@@ -84,7 +84,6 @@ from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
-CONNECT_UP_TO = 1 << 30
 INV_PI = 1.0 / np.pi
 
 
@@ -439,7 +438,7 @@ class IndirectTracer:
     def _joinable(self, bounce, n_glossy, glossy_rows, k):
         """(k,) bool: the vertices y_bounce that may be joined to a light vertex (a path vertex
         bounce + 1): Lambertian and within the bounce limits."""
-        ok = np.full(k, bounce + 1 <= self.total_limit and bounce <= CONNECT_UP_TO)
+        ok = np.full(k, bounce + 1 <= self.total_limit)
         if n_glossy is not None:
             ok &= (bounce + 1 - n_glossy) <= self.max_bounces
         if glossy_rows is not None:
