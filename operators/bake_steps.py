@@ -64,7 +64,6 @@ class BakeInputs:
     keys: dict = field(default_factory=dict)  #: object name -> key (``name_full``)
     light_paths: object = None         #: the LightPaths the bake follows (None: settings.max_bounces)
     uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
-    connections_off: str = None        #: why no light connections were traced although asked for
 
 
 @dataclass
@@ -78,6 +77,7 @@ class BakedLightmaps:
     names: tuple = ()                  #: the meshes that carry its states (every mesh with states)
     denoise: dict = field(default_factory=dict)  #: object name -> islands.DenoiseInput (denoise on)
     uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
+    connections_off: str = None        #: why no light connections were traced although asked for
 
 
 def check_light_paths(light_paths):
