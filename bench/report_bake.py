@@ -159,12 +159,14 @@ def default_mode_verdicts(results):
     for key, bar, time_bar in DEFAULT_MODE_BARS:
         case = results.get("bake", {}).get(key)
         names = [m["name"] for m in (case or {}).get("methods", []) if m["family"] == mode]
+        defaults = [n for n in names if "(default" in n]   # the entry run with the default settings
+        names = defaults or names
         if not case or (not names and mode != "UNGUIDED"):
             out.append((f"default mode {mode} on {key}", "not measured in this run"))
             continue
         name = names[0] if names else "UNGUIDED"
         effs = {n: e for (m, n, _, _, _, e, _) in efficiency_rows(case) if m == name}
-        if mode == "UNGUIDED":     # the reference itself, at the counts it was run at
+        if name == "UNGUIDED":     # the reference itself, at the counts it was run at
             effs = {p["samples"]: 1.0 for p in case["curves"].get("UNGUIDED", [])
                     if p["samples"] in EFFICIENCY_SAMPLES}
         at = ", ".join(f"{n} spp {e:.2f} x" for n, e in sorted(effs.items()))

@@ -38,6 +38,8 @@ from bench import common  # noqa: E402
 from bench.common import RESULTS, log  # noqa: E402
 
 SECTIONS = ("bake", "build", "solve", "convergence", "policy", "farm")
+#: The default settings' method (UNGUIDED with light connections): issue 20's "default mode".
+DEFAULT_NAME = "UNGUIDED + light connections (default)"
 
 
 def profiles():
@@ -59,7 +61,9 @@ def profiles():
         # which alone would add about a minute per repeat).
         cycles_guided_ladder={"cornell": (16, 64, 256), "narrow_opening": (16, 64, 256), "heavy": (16, 64)},
         lmdp_methods=[
-            dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder),
+            # the reference: plain path tracing (no light connections)
+            dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder, settings={"light_share": 0.0}),
+            dict(mode="UNGUIDED", name=DEFAULT_NAME, ladder=ladder),
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts (defaults)", ladder=(16, 64, 256)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=ladder),
             dict(mode="GUIDED", name="GUIDED THESIS λ x0.01", ladder=(4, 16, 64), cases=light,
@@ -83,7 +87,8 @@ def profiles():
         cycles_ladder=(1, 4, 16, 64),
         cycles_guided_ladder={"cornell": (16, 64), "narrow_opening": (16, 64)},
         lmdp_methods=[
-            dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64)),
+            dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64), settings={"light_share": 0.0}),
+            dict(mode="UNGUIDED", name=DEFAULT_NAME, ladder=(4, 16, 64)),
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts", ladder=(16, 64)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=(4, 16, 64)),
             dict(mode="GUIDED", name="GUIDED THESIS λ x1", ladder=(4, 16), settings={"cost_mode": "THESIS"}),

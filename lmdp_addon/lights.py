@@ -157,7 +157,8 @@ class EmitterSampler:
         d_plane = dot3(o, n_l) - np.take(self.plane32, e)
         return np.take(self.longest2, e) > d_plane * d_plane
 
-    def next_event(self, points, normals, rng, caster, mis=True, lift=None, geometric=None, bsdf=None):
+    def next_event(self, points, normals, rng, caster, mis=True, lift=None, geometric=None, bsdf=None,
+                   mis_hook=None):
         """``(values (k, 3) float32, shadow rays)``: the light-sampling half of the MIS estimate
         of D_e(y) = (1/π) ∫ L_e cos θ dω at surface points y (``mis=False``: the whole of D_e(y)
         by light sampling alone, weight ``q / p_L``; for paths that end at y).
@@ -232,6 +233,10 @@ class EmitterSampler:
                               / np.maximum(np.take(solid_angle, np.take(vis, solid)), 1e-300))
         q = np.take(cos_y, vis) * np.float32(INV_PI)
         weight = q / (p_light + q) if mis else q / p_light
+        if mis_hook is not None:   # a third strategy for these paths (light tracing): its share
+            gv = normals if geometric is None else geometric
+            q_g = dot3(tuple(np.take(gv[:, i], vis) for i in range(3)), tuple(np.take(dl[:, i], vis) for i in range(3)))
+            weight = weight * mis_hook(vis, ev, p_light, q, q_g * np.float32(INV_PI))
         if passed is not None and passed.ndim == 1:
             weight = weight * passed
         set_rows(out, vis, rows(self.radiance32, ev) * weight[:, None])
@@ -289,7 +294,7 @@ class EmitterSampler:
                                lift=lift, geometric=None if geometric is None
                                else np.ascontiguousarray(geometric, dtype=np.float32))
 
-    def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals, pdf_from=None):
+    def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals, pdf_from=None, mis_hook=None):
         """BSDF-sampling half of the MIS estimate for the rays ``hits (k,)`` of a wavefront (from
         a vertex y_k, k >= 1) that hit geometry: ``(lit, values)``, the rays among them that hit
         an emitter's emitting side and their ``L_e · q / (q + p_L)`` (k_lit, 3), to be multiplied
@@ -320,4 +325,7 @@ class EmitterSampler:
         if pdf_from is not None:
             p = pdf_from[ray]
             q = np.where(np.isnan(p), q, p).astype(q.dtype, copy=False)
-        return ray, rows(self.triangle_emission32, t) * (q / (q + p_light))[:, None]
+        weight = q / (q + p_light)
+        if mis_hook is not None:
+            weight = weight * mis_hook(ray, e, p_light, q)
+        return ray, rows(self.triangle_emission32, t) * weight[:, None]

@@ -43,6 +43,7 @@ class Settings:
     max_iterations: int = 10000       #: iteration cap of POWER and ITERATIVE
     # Bake (guided path tracing)
     bake_mode: str = "UNGUIDED"       #: 'UNGUIDED', 'GUIDED', 'FINAL_GATHER' or 'RESIDUAL' (docs/design.md)
+    light_share: float = 0.5          #: UNGUIDED / GUIDED: share s of paths with a light vertex (light connections, bake/tracer)
     bake_resolution: int = 128        #: lightmap width = height in pixels
     bake_samples: int = 64            #: paths per texel
     bake_margin: int = 16             #: texels of dilation around UV islands (like Cycles)

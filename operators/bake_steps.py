@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from ..lmdp_addon.bake import driver
+from ..lmdp_addon.bake import connections, driver
 from ..lmdp_addon.bake.checks import check_bake, check_texels, scene_fingerprint
 from ..lmdp_addon.bake.content import BakeContent
 from ..lmdp_addon.bake.islands import denoise_input
@@ -77,6 +77,7 @@ class BakedLightmaps:
     names: tuple = ()                  #: the meshes that carry its states (every mesh with states)
     denoise: dict = field(default_factory=dict)  #: object name -> islands.DenoiseInput (denoise on)
     uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
+    connections_off: str = None        #: why no light connections were traced although asked for
 
 
 def check_light_paths(light_paths):
@@ -214,7 +215,8 @@ def compute_bake(inputs, settings, progress):
         prepared = {ob.name: denoise_input(inputs.scene, ob, settings.multiply_color) for ob in result.objects}
     return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths, solved=solved,
                           names=carriers, denoise={k: v for k, v in prepared.items() if v is not None},
-                          uv_maps=dict(inputs.uv_maps))
+                          uv_maps=dict(inputs.uv_maps),
+                          connections_off=connections.off_reason(inputs.scene, settings))
 
 
 def _objects_by_key(keys):
@@ -267,4 +269,8 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
                     f"{sum(baked.solved.seconds.values()):.2f} s)")
     if baked.light_paths is not None:
         message += f"; {baked.light_paths.summary()}"
+    if any(ob.stats.light_vertices for ob in result.objects):
+        message += f"; light connections (share {settings.light_share:g})"
+    elif baked.connections_off:
+        message += f"; {baked.connections_off}"
     return message, warnings

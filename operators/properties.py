@@ -202,6 +202,14 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
                     "instead of cosine sampling (probability, 0..1)",
         default=_DEFAULTS.guide_fraction, min=0.0, max=1.0, subtype='FACTOR',
     )
+    light_share: FloatProperty(
+        name="Light Connections",
+        description="UNGUIDED and GUIDED: share of paths that also trace a ray from a light and join its first "
+                    "hit to every diffuse vertex of the path (unbiased; finds light reflected by surfaces "
+                    "right beside a lamp). Off while a sample clamp is on, or with transparent materials "
+                    "(share, 0..1; 0: off)",
+        default=_DEFAULTS.light_share, min=0.0, max=1.0, subtype='FACTOR',
+    )
     light_paths: EnumProperty(
         name="Light Paths",
         description="Where the bake's path length comes from: the scene's Cycles Light Paths "

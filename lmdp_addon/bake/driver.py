@@ -329,7 +329,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
                             content=BakeContent.from_settings(settings),
                             glossy_bounces=settings.glossy_bounces, total_bounces=settings.total_bounces,
                             clamp=SampleClamp.from_settings(settings),
-                            min_light_bounces=getattr(settings, "min_light_bounces", 0))
+                            min_light_bounces=getattr(settings, "min_light_bounces", 0),
+                            light_share=getattr(settings, "light_share", 0.0))
     return tracer, guide, info
 
 

@@ -294,6 +294,10 @@ class CosineDirections:
         d = cosine_directions(normals, u, stratified=first)
         return d, np.ones(len(normals), np.float32), dot(normals, d)
 
+    def density(self, normals, states, directions, first):
+        """p(ω) = max(cos θ, 0) / π (k,) of :meth:`sample` for ``directions (k, 3)``."""
+        return np.maximum(dot(normals, directions).astype(np.float64), 0.0) * INV_PI
+
 
 class GuidedDirections:
     """GUIDED direction sampling: the one-sample mixture ``p = α g_s + (1 - α) cos/π`` of the
@@ -330,3 +334,14 @@ class GuidedDirections:
                + np.where(has, 1.0 - self.fraction, 1.0) * np.maximum(cos, 0.0) * INV_PI)
         w = np.where((cos > 0) & (pdf > 0), cos * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
         return d, w.astype(np.float32), cos
+
+    def density(self, normals, states, directions, first):
+        """The mixture's p(ω) (k,) of :meth:`sample` for ``directions (k, 3)`` at vertices with
+        normals ``normals`` and states ``states`` (-1: the cosine lobe alone)."""
+        has = states >= 0
+        cos = np.maximum(dot(normals, directions).astype(np.float64), 0.0) * INV_PI
+        g = np.zeros(len(normals))
+        h = np.flatnonzero(has)
+        if len(h):
+            g[h] = self.guide.density(states[h], rows(directions, h), first)
+        return np.where(has, self.fraction * g + (1.0 - self.fraction) * cos, cos)

@@ -37,6 +37,13 @@ Estimator (per path, all paths of a batch advance together: "wavefront"; no Pyth
   'INDIRECT'}) and / or multiplies each path by x0's diffuse colour (Cycles' 'COLOR');
 * Russian roulette from vertex ``rr_start`` on: survival probability ``min(1, max_c β_c)``,
   survivors divided by it (unbiased).
+* **light connections** (``light_share`` s > 0, UNGUIDED and GUIDED without the clamp or
+  transparency): with probability s a path also traces one light vertex y' (a point on the
+  emitters ∝ power, a cosine direction from it, its first hit, :meth:`_light_subpaths`), and
+  every Lambertian eye vertex is joined to it by a shadow ray (:meth:`_connect`); the light
+  sample at y', the BSDF ray from y' that hits the emitter and the connection are weighted by the
+  balance heuristic over the three (``px p_L / D``, ``px q / D``, ``s P_lt / D``; docs/design.md
+  "Light connections"), so the estimate stays unbiased;
 * ``clamp`` (:mod:`~lmdp_addon.bake.clamp`): Cycles' sample clamp of every contribution
   (:meth:`IndirectTracer._add`), and then Cycles' Russian roulette instead (from y_2, survival
   ``min(1, sqrt(max_c T_c))`` of Cycles' throughput T = ρ(x0) β w), so that the clamped
@@ -71,6 +78,7 @@ from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows, set_rows
 from ..transparency import Transparency
+from . import connections
 from .clamp import clamp_light
 from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
@@ -92,6 +100,8 @@ class TraceStats:
     gathered: int = 0         #: FINAL_GATHER paths ended by the solution at y_1
     gather_fallback: int = 0  #: FINAL_GATHER paths continued by path tracing (no state near y_1)
     glossy_vertices: int = 0  #: vertices on surfaces with microfacet lobes (BSDF sampling)
+    light_vertices: int = 0   #: light vertices traced for light connections
+    connections: int = 0      #: light connections that reached their light vertex (shadow ray clear)
 
     def add(self, other):
         for name in self.__dataclass_fields__:
@@ -124,6 +134,7 @@ class IndirectTracer:
     glossy_bounces, total_bounces  on glossy scenes, Cycles' Glossy and Max bounces: a path keeps
                     at most ``max_bounces`` diffuse, ``glossy_bounces`` glossy and
                     ``total_bounces`` bounces in all (-1: no separate limit, ``max_bounces``)
+    light_share     s: the share of paths with a light vertex joined to their eye vertices (0: off)
     clamp           :class:`~lmdp_addon.bake.clamp.SampleClamp`: Cycles' direct / indirect sample
                     clamp on every light contribution (:meth:`_add`), with Cycles' Russian
                     roulette (:meth:`_cycles_roulette`) after ``min_light_bounces`` (Cycles' Min
@@ -132,7 +143,7 @@ class IndirectTracer:
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
                  guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None,
-                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0):
+                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0, light_share=0.0):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -200,6 +211,14 @@ class IndirectTracer:
         self.glossy_limit = int(glossy_bounces) if glossy_bounces >= 0 else self.total_limit
         if self.glossy is None:
             self.total_limit = self.max_bounces
+        self.light_share = float(light_share) if (mode in ("UNGUIDED", "GUIDED") and self.clamp is None
+                                                  and self.transparency is None and not self.lights.empty
+                                                  and self.max_bounces >= 1) else 0.0
+        if self.light_share > 0:
+            ok = (scene.triangle_geometry()[1] > 0) & ~scene.is_emissive()
+            if self.glossy is not None:
+                ok &= ~self.glossy
+            self.connectable = ok
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None, control_out=None,
@@ -255,6 +274,12 @@ class IndirectTracer:
             self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
         if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
             _to_cycles(rho0, idx, _cosine_ratio(w))
+        lv = joins = None      # light connections (``connections``)
+        if self.light_share > 0:
+            lv = connections.LightVertices(self, n, rng, stats)
+            joins = connections.JoinState(n, self.light_share, self.lights)
+            connections.connect(self, L, lv, idx, pos, nrm, gnrm, lift, None, states, True, 0, stats)
+            joins.joined[idx] = True
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                        gnrm, lift, d, w, cos_prev, beta)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
@@ -274,9 +299,13 @@ class IndirectTracer:
                     beta = beta * tint
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
+            hook = None
+            if joins is not None:   # the emitter hits' share (of the vertex left), then move on
+                hook = joins.emission_hook(idx, gnrm, d)
+                joins.arrive(self, idx, h, d, w, cos_prev, tri, dist)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
-                                  bounce=bounce, rho0=rho0, stats=stats)
+                                  bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook)
                 if self.lamp_hits:   # lamps the rays cross before their hit (they go on through)
                     self._lamps_found(L, idx, beta * w[:, None], origin, nrm, d, tri, dist, cos_prev, q_prev,
                                       bounce=bounce, rho0=rho0, stats=stats)
@@ -330,9 +359,17 @@ class IndirectTracer:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
             # ---- next-event estimation at y_bounce ----
-            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows)
+            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows,
+                                          hook=None if joins is None else joins.hook(idx))
             direct = _summed(samples)
             self._add_light_samples(L, idx, beta, samples, direct, bounce, rho0, stats)
+            if joins is not None:    # light vertices joined to y_bounce (a vertex bounce + 1)
+                eligible = self._joinable(bounce, n_glossy, glossy_rows, len(idx))
+                joins.joined[idx] = eligible
+                e = np.flatnonzero(eligible)
+                if len(e):
+                    connections.connect(self, L, lv, idx[e], rows(pos, e), rows(nrm, e), rows(gnrm, e),
+                                        np.take(lift, e), rows(beta, e), np.take(vstates, e), False, bounce, stats)
             if z_ind is not None:    # g = β_1 (D̂(y_1) + ẑ_ind(y_1)) on the path's own light sample
                 control_out[idx] = beta * (direct + z_ind)
                 if first_hit_only:
@@ -398,7 +435,17 @@ class IndirectTracer:
             colour = colour * self.scene.surface.alpha(t, bu, bv)[:, None]
         return colour
 
-    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None):
+    def _joinable(self, bounce, n_glossy, glossy_rows, k):
+        """(k,) bool: the vertices y_bounce that may be joined to a light vertex (a path vertex
+        bounce + 1): Lambertian and within the bounce limits."""
+        ok = np.full(k, bounce + 1 <= self.total_limit)
+        if n_glossy is not None:
+            ok &= (bounce + 1 - n_glossy) <= self.max_bounces
+        if glossy_rows is not None:
+            ok &= ~glossy_rows.mask
+        return ok
+
+    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, hook=None):
         """The light-sampling half of the direct light D(y) at the points ``pos`` (shading
         normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``), one (k, 3) estimate per light
         kind: the emitters' MIS estimate (``lights``), Blender's lights (``lamps``; MIS-weighted
@@ -407,7 +454,7 @@ class IndirectTracer:
         (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density."""
         geometric = gnrm if self.smooth else None
         direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric,
-                                                     bsdf=glossy_rows)
+                                                     bsdf=glossy_rows, mis_hook=hook)
         stats.shadow_rays += shadow_rays
         samples = [direct]
         if not self.lamps.empty:
@@ -510,7 +557,7 @@ class IndirectTracer:
         return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
 
     def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None, bounce=2, rho0=None,
-                     stats=None):
+                     stats=None, mis_hook=None):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k = ``bounce`` >= 2,
         or 1 with the direct light of ``content``): the world through the rays that escape, the
         emitters through the rays ``h`` that hit geometry (the sampled-ray half of the MIS
@@ -527,7 +574,7 @@ class IndirectTracer:
             self._add(L, idx[miss], rows(bw, miss) * self.world, bounce - 1, rho0, stats)
         if len(h):
             lit, value = self.lights.emission_hits(origin, d, tri, dist, cos_prev, h, self.face_normals,
-                                                   pdf_from=q_prev)
+                                                   pdf_from=q_prev, mis_hook=mis_hook)
             self._add(L, idx[lit], rows(bw, lit) * value, bounce - 1, rho0, stats)
 
     def _lamps_found(self, L, idx, bw, origin, nrm, d, tri, dist, cos_prev, q_prev=None, bounce=2, rho0=None,

@@ -341,6 +341,9 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row = layout.row()
         row.active = props.bake_mode in ('GUIDED', 'FINAL_GATHER')   # both draw their first bounce from u*
         row.prop(props, "guide_fraction")
+        row = layout.row()
+        row.active = props.bake_mode in ('UNGUIDED', 'GUIDED')   # the path tracers join light vertices
+        row.prop(props, "light_share")
         layout.prop(props, "light_paths")
         column = layout.column(align=True)
         column.active = props.light_paths == 'CUSTOM'   # SCENE: the scene's Cycles Light Paths decide

@@ -116,6 +116,24 @@ def test_scene_clamps_are_applied_and_reported(cornell, lmdp_ext, tmp_path):
     assert stats["objects"]["Floor"]["trace"]["clamped"] > 0       # the demo light's direct samples
     summary = lmdp_ext.sub("operators.properties").light_paths_from_scene(cornell).summary()
     assert summary.endswith("direct clamped at 0.25 and indirect clamped at 10 (biased, like Cycles)")
+    assert stats["objects"]["Floor"]["trace"]["light_vertices"] == 0   # light connections off under a clamp
+
+
+def test_light_connections_follow_the_clamp_and_the_report_says_so(cornell, lmdp_ext, tmp_path):
+    """Without a clamp the default bake joins light vertices; Cycles' default Clamp Indirect 10
+    turns them off, and the Bake report says why (``connections.off_reason``)."""
+    cornell.cycles.sample_clamp_indirect = 0.0
+    cornell.cycles.sample_clamp_direct = 0.0
+    _, stats = tiny_bake(lmdp_ext, tmp_path)
+    assert stats["objects"]["Floor"]["trace"]["light_vertices"] > 0
+    assert stats["objects"]["Floor"]["trace"]["connections"] > 0
+    cornell.cycles.sample_clamp_indirect = 10.0
+    settings, _ = lmdp_ext.sub("operators.properties").bake_settings_from_scene(cornell)
+    scene = lmdp_ext.sub("operators.adapters.extract").extract_scene(bpy.context, [bpy.data.objects["Floor"]])
+    reason = lmdp_ext.sub("lmdp_addon.bake.connections").off_reason(scene, settings)
+    assert reason.startswith("light connections off: a sample clamp is on")
+    _, stats = tiny_bake(lmdp_ext, tmp_path)
+    assert stats["objects"]["Floor"]["trace"]["light_vertices"] == 0
 
 
 def test_no_diffuse_bounce_is_refused_with_the_reason(cornell, lmdp_ext):
