@@ -49,8 +49,6 @@ class LightVertices:
     ``base`` = ρ(y') L_e (cos_s / cos_g) / (π s P_l p_side))."""
 
     def __init__(self, tracer, n, rng, stats):
-        self.tracer = tracer
-        self.n = n
         self.first = None
         self._sample(tracer, n, rng, stats)
 
@@ -77,7 +75,7 @@ class LightVertices:
             return
         k, t, bu, bv, dist = hit1
         path, e, d, p_side, n_l = take[k], e[k], d[k], p_side[k], n_l[k]
-        y, ng, ns = _vertex(tr, t, bu, bv, d)
+        y, ns, ng, _, albedo = tr.hit_points(d, t, bu, bv)
         # the light sample's and the emitter hit's densities of l at y'_1 (as the tracer's)
         q = np.maximum(dot(ns, -d), 0.0).astype(np.float64) * INV_PI
         cos_g = dot(ng, -d).astype(np.float64)
@@ -89,7 +87,6 @@ class LightVertices:
         if len(near):
             omega = spherical_triangle_solid_angle(E.corners64[e[near]] - yo[near, None, :].astype(np.float64))
             p_light[near] = E.power_prob[e[near]] / np.maximum(omega, 1e-300)
-        albedo = _albedo(tr, t, bu, bv)
         base = ((_ratio(q * np.pi, cos_g) / (s * np.pi * E.pdf_area32[e] * p_side))[:, None]
                 * albedo * E.radiance32[e])
         slot = np.full(n, -1, np.int64)
@@ -107,20 +104,6 @@ def _hits(tr, origin, d, stats):
     if len(k) == 0:
         return None
     return k, tri[k], bu[k], bv[k], dist[k]
-
-
-def _vertex(tr, t, bu, bv, d):
-    """Position, geometric and shading normal (of the side the ray ``d`` arrived on) of hits."""
-    y = rows(tr.corner0, t) + rows(tr.edge1, t) * bu[:, None] + rows(tr.edge2, t) * bv[:, None]
-    ng = rows(tr.face_normals, t)
-    front = dot(ng, d) < 0
-    np.negative(ng, out=ng, where=~front[:, None])
-    ns = tr.scene.shading_normals(t, bu, bv, side=front) if tr.smooth else ng
-    return y, ng, ns
-
-
-def _albedo(tr, t, bu, bv):
-    return tr.scene.albedo_at(t, bu, bv) if tr.textured else rows(tr.albedo, t)
 
 
 class JoinState:

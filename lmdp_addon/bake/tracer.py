@@ -542,10 +542,18 @@ class IndirectTracer:
 
     def _vertices(self, d, tri, bu, bv, w, beta):
         """The hit points y_k of rays in directions ``d`` on triangles ``tri`` at barycentrics
-        ``(bu, bv)``: positions (``c0 + u e1 + v e2``, on the triangle to the precision of its
-        corners), the shading normal N and the geometric normal Ng of the side the ray arrived
-        on (both flipped on a back face, as Cycles does; N = Ng on flat triangles), whether that
-        is the front, and the throughput ``β_k = β_{k-1} w_{k-1} ρ(y_k)``."""
+        ``(bu, bv)`` (:meth:`hit_points`: positions, shading and geometric normals of the side
+        the ray arrived on, whether that is the front) and the throughput
+        ``β_k = β_{k-1} w_{k-1} ρ(y_k)``."""
+        pos, nrm, gnrm, front, albedo = self.hit_points(d, tri, bu, bv)
+        return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
+
+    def hit_points(self, d, tri, bu, bv):
+        """Hits of rays in directions ``d`` on triangles ``tri`` at barycentrics ``(bu, bv)``:
+        positions (``c0 + u e1 + v e2``, on the triangle to the precision of its corners), the
+        shading normal N and the geometric normal Ng of the side the ray arrived on (both
+        flipped on a back face, as Cycles does; N = Ng on flat triangles), whether that is the
+        front, and the diffuse albedo there."""
         pos = rows(self.corner0, tri)                     # c0 + u e1 + v e2, in place
         pos += rows(self.edge1, tri) * bu[:, None]
         pos += rows(self.edge2, tri) * bv[:, None]
@@ -554,7 +562,7 @@ class IndirectTracer:
         np.negative(gnrm, out=gnrm, where=~front[:, None])     # Ng of the side the ray arrived on
         nrm = self.scene.shading_normals(tri, bu, bv, side=front) if self.smooth else gnrm
         albedo = self.scene.albedo_at(tri, bu, bv) if self.textured else rows(self.albedo, tri)
-        return pos, nrm, gnrm, front, beta * (w[:, None] * albedo)
+        return pos, nrm, gnrm, front, albedo
 
     def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None, bounce=2, rho0=None,
                      stats=None, mis_hook=None):
