@@ -294,6 +294,20 @@ class EmitterSampler:
                                lift=lift, geometric=None if geometric is None
                                else np.ascontiguousarray(geometric, dtype=np.float32))
 
+    def light_density(self, origins, e, dist, cos_l):
+        """(k,) the light-sampling density per steradian of :meth:`next_event` from the float32
+        ``origins (k, 3)`` (lifted as next_event lifts them) of points on emitter triangles
+        ``e`` at distances ``dist`` with cosines ``cos_l`` there: ``p_A r² / cos θ_l`` where
+        the point is sampled on the area, ``P(triangle) / Ω`` where in its solid angle
+        (:meth:`near`)."""
+        p_light = np.take(self.pdf_area32, e) * dist ** 2 / cos_l
+        near = np.flatnonzero(self.near(origins, e))
+        if len(near):
+            omega = spherical_triangle_solid_angle(rows(self.corners64, e[near])
+                                                   - rows(origins, near).astype(np.float64)[:, None, :])
+            p_light[near] = self.power_prob[e[near]] / np.maximum(omega, 1e-300)
+        return p_light
+
     def emission_hits(self, origins, d, tri, dist, cos_from, hits, face_normals, pdf_from=None, mis_hook=None):
         """BSDF-sampling half of the MIS estimate for the rays ``hits (k,)`` of a wavefront (from
         a vertex y_k, k >= 1) that hit geometry: ``(lit, values)``, the rays among them that hit
@@ -313,14 +327,8 @@ class EmitterSampler:
         cos_l = np.where(self.triangle_two_sided[t], np.abs(cos_l), cos_l)
         lit = np.flatnonzero(cos_l > 0)
         ray, t, cos_l = ray[lit], t[lit], cos_l[lit]
-        p_light = self.triangle_pdf_area[t] * dist[ray] ** 2 / cos_l
         e = self.triangle_emitter[t]
-        o32 = rows(origins, ray)
-        near = np.flatnonzero(self.near(o32, e))
-        if len(near):
-            omega = spherical_triangle_solid_angle(rows(self.corners64, e[near])
-                                                   - rows(o32, near).astype(np.float64)[:, None, :])
-            p_light[near] = self.power_prob[e[near]] / np.maximum(omega, 1e-300)
+        p_light = self.light_density(rows(origins, ray), e, dist[ray], cos_l)
         q = cos_from[ray] * INV_PI
         if pdf_from is not None:
             p = pdf_from[ray]

@@ -33,7 +33,7 @@ arrival at y' (its f / (s P_lt), f the path's contribution to the estimate).
 """
 import numpy as np
 
-from ..sampling import cosine_directions, dot, rows, spherical_triangle_solid_angle, table_index
+from ..sampling import cosine_directions, dot, rows, table_index
 
 INV_PI = 1.0 / np.pi
 
@@ -79,14 +79,9 @@ class LightVertices:
         # the light sample's and the emitter hit's densities of l at y'_1 (as the tracer's)
         q = np.maximum(dot(ns, -d), 0.0).astype(np.float64) * INV_PI
         cos_g = dot(ng, -d).astype(np.float64)
-        r = dist.astype(np.float64)
-        cos_l = np.abs(dot(n_l.astype(np.float32), d)).astype(np.float64)
-        p_light = E.pdf_area32[e].astype(np.float64) * r * r / np.maximum(cos_l, 1e-12)
-        yo = (y + np.take(tr.offsets, t)[:, None] * ng).astype(np.float32)
-        near = np.flatnonzero(E.near(tuple(np.ascontiguousarray(yo[:, i]) for i in range(3)), e))
-        if len(near):
-            omega = spherical_triangle_solid_angle(E.corners64[e[near]] - yo[near, None, :].astype(np.float64))
-            p_light[near] = E.power_prob[e[near]] / np.maximum(omega, 1e-300)
+        cos_l = np.maximum(np.abs(dot(n_l.astype(np.float32), d)).astype(np.float64), 1e-12)
+        yo = (y + np.take(tr.offsets, t)[:, None] * ng).astype(np.float32)   # lifted as the light sample's
+        p_light = E.light_density(yo, e, dist.astype(np.float64), cos_l)
         base = ((_ratio(q * np.pi, cos_g) / (s * np.pi * E.pdf_area32[e] * p_side))[:, None]
                 * albedo * E.radiance32[e])
         slot = np.full(n, -1, np.int64)
