@@ -210,20 +210,32 @@ def connect(tr, L, lv, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, s
     tr._add(L, idx[hv], value, bounce + 1, None, stats)
 
 
+def unavailable(mode, clamp, transparency, lights, max_bounces):
+    """Why a tracer of ``mode`` with the sample ``clamp`` (a ``SampleClamp`` or None), the
+    scene's ``transparency`` (None: opaque), its ``lights`` (``EmitterSampler``) and path length
+    ``max_bounces`` cannot join light vertices (a sentence), or None when it can."""
+    if mode not in ("UNGUIDED", "GUIDED"):
+        return f"{mode} has no light connections"
+    if clamp is not None and clamp.active:
+        return ("light connections off: a sample clamp is on (Cycles clamps its own path sampling; "
+                "Clamp Direct / Indirect 0 turns them on)")
+    if transparency is not None:
+        return "light connections off: the scene has transparent (alpha) materials"
+    if lights.empty:
+        return "light connections off: no emissive mesh (lamps and the world keep their own sampling)"
+    if max_bounces < 1:
+        return "light connections off: no bounce"
+    return None
+
+
 def off_reason(scene, settings):
     """Why a bake of ``scene`` with ``settings`` traces no light connections although
     ``light_share`` > 0 in UNGUIDED or GUIDED (a sentence for the report), or None (they are on,
-    or not asked for). The tracer's own conditions (``IndirectTracer.light_share``)."""
+    or not asked for): :func:`unavailable`, the tracer's own test."""
+    from ..lights import EmitterSampler
     from ..transparency import Transparency
     from .clamp import SampleClamp
     if settings.light_share <= 0 or settings.bake_mode not in ("UNGUIDED", "GUIDED"):
         return None
-    clamp = SampleClamp.from_settings(settings)
-    if clamp is not None and clamp.active:
-        return ("light connections off: a sample clamp is on (Cycles clamps its own path sampling; "
-                "Clamp Direct / Indirect 0 turns them on)")
-    if Transparency.of(scene) is not None:
-        return "light connections off: the scene has transparent (alpha) materials"
-    if not scene.is_emissive().any():
-        return "light connections off: no emissive mesh (lamps and the world keep their own sampling)"
-    return None
+    return unavailable(settings.bake_mode, SampleClamp.from_settings(settings), Transparency.of(scene),
+                       EmitterSampler(scene), settings.max_bounces)

@@ -211,9 +211,8 @@ class IndirectTracer:
         self.glossy_limit = int(glossy_bounces) if glossy_bounces >= 0 else self.total_limit
         if self.glossy is None:
             self.total_limit = self.max_bounces
-        self.light_share = float(light_share) if (mode in ("UNGUIDED", "GUIDED") and self.clamp is None
-                                                  and self.transparency is None and not self.lights.empty
-                                                  and self.max_bounces >= 1) else 0.0
+        self.light_share = float(light_share) if connections.unavailable(
+            mode, self.clamp, self.transparency, self.lights, self.max_bounces) is None else 0.0
         if self.light_share > 0:
             ok = (scene.triangle_geometry()[1] > 0) & ~scene.is_emissive()
             if self.glossy is not None:
