@@ -330,18 +330,22 @@ class GuidedDirections:
         if len(other):
             g[other] = self.guide.density(states[other], rows(d, other), first)
         cos = dot(normals, d).astype(np.float64)
-        pdf = (np.where(has, self.fraction * g, 0.0)
-               + np.where(has, 1.0 - self.fraction, 1.0) * np.maximum(cos, 0.0) * INV_PI)
+        pdf = self._mixture(has, g, cos)
         w = np.where((cos > 0) & (pdf > 0), cos * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
         return d, w.astype(np.float32), cos
+
+    def _mixture(self, has, g, cos):
+        """α g + (1 - α) max(cos, 0) / π where a vertex has a state (``has``), else the cosine
+        density alone."""
+        c = np.maximum(cos, 0.0) * INV_PI
+        return np.where(has, self.fraction * g + (1.0 - self.fraction) * c, c)
 
     def density(self, normals, states, directions, first):
         """The mixture's p(ω) (k,) of :meth:`sample` for ``directions (k, 3)`` at vertices with
         normals ``normals`` and states ``states`` (-1: the cosine lobe alone)."""
         has = states >= 0
-        cos = np.maximum(dot(normals, directions).astype(np.float64), 0.0) * INV_PI
         g = np.zeros(len(normals))
         h = np.flatnonzero(has)
         if len(h):
             g[h] = self.guide.density(states[h], rows(directions, h), first)
-        return np.where(has, self.fraction * g + (1.0 - self.fraction) * cos, cos)
+        return self._mixture(has, g, dot(normals, directions).astype(np.float64))
