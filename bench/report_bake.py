@@ -2,6 +2,7 @@
 bake case (curves, per-sample efficiency, ratio table, verdict sentence) and issue 5's targets."""
 import math
 
+from .common import DEFAULT_NAME
 from .report_format import fmt_pct, fmt_s, fmt_signed_pct, table
 
 
@@ -159,8 +160,7 @@ def default_mode_verdicts(results):
     for key, bar, time_bar in DEFAULT_MODE_BARS:
         case = results.get("bake", {}).get(key)
         names = [m["name"] for m in (case or {}).get("methods", []) if m["family"] == mode]
-        defaults = [n for n in names if "(default" in n]   # the entry run with the default settings
-        names = defaults or names
+        names = [n for n in names if n == DEFAULT_NAME] or names   # the entry run with the defaults
         if not case or (not names and mode != "UNGUIDED"):
             out.append((f"default mode {mode} on {key}", "not measured in this run"))
             continue

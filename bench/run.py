@@ -35,11 +35,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import common  # noqa: E402
-from bench.common import RESULTS, log  # noqa: E402
+from bench.common import DEFAULT_NAME, RESULTS, log  # noqa: E402
 
 SECTIONS = ("bake", "build", "solve", "convergence", "policy", "farm")
-#: The default settings' method (UNGUIDED with light connections): issue 20's "default mode".
-DEFAULT_NAME = "UNGUIDED + light connections (default)"
 
 
 def profiles():
