@@ -101,3 +101,9 @@ def lit_scene(fresh_scene):
         obj.select_set(False)
     bpy.context.view_layer.objects.active = None
     return {"Floor": floor, "Box": box, "Lamp": lamp, "Camera": camera}
+
+
+@pytest.fixture
+def demo(lmdp_ext):
+    """The add-on's built-in scenes (``operators.adapters.demo_scenes``) in this session's copy."""
+    return lmdp_ext.sub("operators.adapters.demo_scenes")

@@ -23,11 +23,6 @@ CYCLES_SAMPLES = 2048
 SAMPLES = 1024
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def reference(lmdp_ext, demo, name, pass_filter, resolution=RESOLUTION, samples=CYCLES_SAMPLES, seeds=(1, 2)):
     """Cycles' DIFFUSE bakes of ``name`` with ``pass_filter`` and ``seeds``, cached; (2, R, R, 3)."""
     extract = lmdp_ext.sub("operators.adapters.extract")

@@ -34,11 +34,6 @@ BOUNCES = 8
 K = 5.0
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def build(kind, lmdp_ext):
     assert bpy.ops.lmdp.add_demo_scene(kind=kind) == {'FINISHED'}
     scene = bpy.context.scene

@@ -27,11 +27,6 @@ RESOLUTION = 16
 SPARK = dict(size=0.02, gap=0.05, strength=5000.0)
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def spark_box():
     """The Cornell box lit only by the spark above the tall box (module docstring)."""
     assert bpy.ops.lmdp.add_demo_scene(kind='CORNELL_BOX') == {'FINISHED'}

@@ -16,11 +16,6 @@ from helpers import add_material, select
 
 
 @pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
-@pytest.fixture
 def library(lmdp_ext):
     return lmdp_ext.sub("lmdp_addon.demo_geometry")
 

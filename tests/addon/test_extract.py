@@ -18,11 +18,6 @@ def extract(lmdp_ext):
 
 
 @pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
-@pytest.fixture
 def library(lmdp_ext):
     return lmdp_ext.sub("lmdp_addon.demo_geometry")
 

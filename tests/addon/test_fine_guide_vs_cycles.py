@@ -15,11 +15,6 @@ from test_residual_vs_cycles import RESOLUTION, SUZANNE, import_suzanne
 
 
 @pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
-@pytest.fixture
 def full_resolution(lmdp_ext, monkeypatch):
     """The fine guide's G = 16 whatever the bake's size (the budget is 1/8 ray per path)."""
     monkeypatch.setattr(lmdp_ext.sub("lmdp_addon.bake.fine_guide"), "FINE_RAYS_PER_PATH", 8.0)

@@ -31,11 +31,6 @@ CAMERA_DISTANCE = 0.03
 VIEW_WIDTH = 0.01
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def render_radiance(scene, fingerprint, point, direction, samples, seed=1):
     """Cycles' mean radiance (3,) over a VIEW_WIDTH-wide orthographic view of ``point`` from
     ``direction`` (unit, pointing away from the surface), cached in out/test_cache under a key

@@ -26,11 +26,6 @@ RESOLUTION = 24
 GLTF_METAL = "/work/fp/gltf/05_metallic_sphere_light/05_metallic_sphere_light.gltf"
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def scene_reference(lmdp_ext, demo, name, resolution, samples, seeds=(1, 2)):
     """Cycles' DIFFUSE/INDIRECT bakes of ``name`` with the scene's own Light Paths (``reference``
     sets 8 bounces), cached under a key that includes them; (len(seeds), R, R, 3)."""

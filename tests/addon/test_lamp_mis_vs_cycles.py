@@ -39,11 +39,6 @@ LAMPS = {
 SLOW = {"point_sphere", "spot_radius", "six_spheres"}
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def check(lmdp_ext, demo, receiver, samples, reference_samples, label, two_percent=True):
     refs = reference(lmdp_ext, demo, receiver, RESOLUTION, reference_samples)
     ob = lmdp_bake(lmdp_ext, receiver, "UNGUIDED", RESOLUTION, samples)

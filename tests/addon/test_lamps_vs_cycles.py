@@ -27,11 +27,6 @@ from test_bake_vs_cycles import BOUNCES, CACHE, assert_means_agree, build, compa
 RESOLUTION = 24
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def cornell_without_light(lmdp_ext):
     build("CORNELL_BOX", lmdp_ext)
     bpy.data.objects.remove(bpy.data.objects["Light"])

@@ -25,11 +25,6 @@ RESOLUTION = 24
 LIGHTMAP = "LMDP Lightmap"
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def grey_texture_material(name, value=0.6):
     """A Diffuse BSDF whose Color is an Image Texture (Vector unlinked: the render UV map) of a
     uniform 4 x 4 image."""

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from helpers import select
-from test_bake_vs_cycles import K, assert_means_agree, build, compare, demo, lmdp_bake, reference  # noqa: F401
+from test_bake_vs_cycles import K, assert_means_agree, build, compare, lmdp_bake, reference
 
 RESOLUTION = 24
 TILT = np.radians(35.0)

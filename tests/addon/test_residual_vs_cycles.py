@@ -17,11 +17,6 @@ SUZANNE = os.environ.get("LMDP_GLTF_SUZANNE", "/work/fp/gltf/02_suzanne/02_suzan
 RESOLUTION = 32
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def import_suzanne():
     """The glTF's mesh, 0.18 m tall on the floor, with a grey Diffuse BSDF (the engine models
     no glossy lobes or textures of its own: the comparison is about light transport)."""

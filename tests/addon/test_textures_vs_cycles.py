@@ -22,11 +22,6 @@ from test_bake_vs_cycles import K, assert_means_agree, build, compare, lmdp_bake
 RESOLUTION = 24
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def image(name, pixels, float_buffer=False, colorspace=None):
     h, w = pixels.shape[:2]
     img = bpy.data.images.new(name, w, h, alpha=True, float_buffer=float_buffer)

@@ -18,11 +18,6 @@ from test_bake_vs_cycles import BOUNCES, K, assert_means_agree, compare, lmdp_ba
 RESOLUTION = 24
 
 
-@pytest.fixture
-def demo(lmdp_ext):
-    return lmdp_ext.sub("operators.adapters.demo_scenes")
-
-
 def bundled_hdri(name):
     path = os.path.join(bpy.utils.system_resource('DATAFILES', path="studiolights/world"), name)
     assert os.path.exists(path), f"Blender's bundled {name} is not in this bpy ({path})"
