@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 COST_MODES = ("THESIS", "PHYSICAL")
 SOLVERS = ("POWER", "DIRECT", "ITERATIVE")
-BAKE_MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
+BAKE_MODES = ("AUTO", "UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
 #: Where the bake's path length comes from (``scene.lmdp.light_paths``): the scene's Cycles
 #: Light Paths, or ``Settings.max_bounces``.
 LIGHT_PATHS = ("SCENE", "CUSTOM")
@@ -42,8 +42,9 @@ class Settings:
     tolerance: float = 1e-8           #: relative change / residual at which the solver stops
     max_iterations: int = 10000       #: iteration cap of POWER and ITERATIVE
     # Bake (guided path tracing)
-    bake_mode: str = "UNGUIDED"       #: 'UNGUIDED', 'GUIDED', 'FINAL_GATHER' or 'RESIDUAL' (docs/design.md)
+    bake_mode: str = "AUTO"           #: 'AUTO', 'UNGUIDED', 'GUIDED', 'FINAL_GATHER' or 'RESIDUAL' (docs/design.md)
     light_share: float = 0.5          #: UNGUIDED / GUIDED: share s of paths with a light vertex (light connections, bake/tracer)
+    splitting: bool = True            #: GUIDED: Russian roulette and splitting by the solution (bake/splitting)
     bake_resolution: int = 128        #: lightmap width = height in pixels
     bake_samples: int = 64            #: paths per texel
     bake_margin: int = 16             #: texels of dilation around UV islands (like Cycles)

@@ -50,6 +50,7 @@ from .session import session_for
 
 #: The bake modes that read the solved LMDP (the others need none).
 SOLUTION_MODES = ("GUIDED", "FINAL_GATHER", "RESIDUAL")
+#: AUTO reads it when its pilot asks for it: the session's if usable, else solved during the bake.
 
 
 @dataclass
@@ -146,6 +147,8 @@ def bake_inputs(context, settings, hook_up="NONE", light_paths=None):
     if settings.bake_mode in SOLUTION_MODES:
         lmdp = usable_solution(session_for(context.scene).result, scene, settings)
         solve = lmdp is None
+    elif settings.bake_mode == "AUTO":     # reused if the pilot asks for it (else solved then)
+        lmdp = usable_solution(session_for(context.scene).result, scene, settings)
     if solve:
         solve_scene(scene).check_for_lmdp()
         pipeline.check_build(solve_scene(scene), settings)
@@ -199,9 +202,15 @@ def compute_bake(inputs, settings, progress):
     if inputs.solve:
         check_bake_texels(inputs, progress)       # a UV problem stops the bake before the solve
         lmdp = solved = pipeline.run_all(solve_scene(inputs.scene), settings, progress, check=False)
+    auto = settings.bake_mode == "AUTO"
+
+    def solve():     # AUTO's pilot asked for the solution: the pipeline of a bake that solves
+        return pipeline.run_all(solve_scene(inputs.scene), settings, progress, check=False)
     result = driver.bake(inputs.scene, inputs.plan.names, settings, lmdp=lmdp, progress=progress,
-                         precompute_seconds=dict(lmdp.seconds) if lmdp is not None else None,
-                         plan=inputs.plan)
+                         precompute_seconds=dict(lmdp.seconds) if lmdp is not None and not auto else None,
+                         plan=inputs.plan, solve=solve if auto else None)
+    if result.auto is not None and result.auto.lmdp is not None:
+        solved = result.auto.lmdp
     result.warnings = list(inputs.warnings) + list(inputs.plan.texel_warnings)
     if inputs.light_paths is not None:
         result.light_paths = inputs.light_paths.as_dict()
@@ -264,9 +273,11 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     content = BakeContent.from_settings(settings).label() + (", denoised" if baked.denoise else "")
     message = (f"Baked {len(result.objects)} lightmap(s) ({result.mode}, {content}, {result.n_texels} texels x "
                f"{settings.bake_samples} samples, {rays / 1e6:.2f} M rays) in {bake_seconds:.2f} s{where}")
+    if result.auto is not None:
+        message += f"; {result.auto.sentence()}"
     if baked.solved is not None:
-        message += (f"; sampled, built and solved the LMDP first ({baked.solved.states.n_points} points, "
-                    f"{sum(baked.solved.seconds.values()):.2f} s)")
+        message += (f"; sampled, built and solved the LMDP{'' if result.auto is not None else ' first'} "
+                    f"({baked.solved.states.n_points} points, {sum(baked.solved.seconds.values()):.2f} s)")
     if baked.light_paths is not None:
         message += f"; {baked.light_paths.summary()}"
     if any(ob.stats.light_vertices for ob in result.objects):

@@ -31,6 +31,10 @@ SOLVER_ITEMS = (
      "Krylov solver of (I - Q P) z = Q P z_terminal, falling back to the power method"),
 )
 BAKE_MODE_ITEMS = (
+    ("AUTO", "Auto",
+     "Unguided path tracing with light connections where its first samples are quiet; where they "
+     "are noisy (light through an opening), the LMDP is solved (or the session's solution reused) and "
+     "the rest is traced Guided when that is more efficient. Unbiased either way"),
     ("UNGUIDED", "Unguided",
      "Path tracing with cosine-weighted directions: the baseline estimator"),
     ("GUIDED", "Guided",
@@ -198,17 +202,24 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
     )
     guide_fraction: FloatProperty(
         name="Guide Fraction",
-        description="GUIDED and FINAL_GATHER: probability of drawing a direction from the optimal policy u* "
+        description="GUIDED (also AUTO's guided part) and FINAL_GATHER: probability of drawing a direction from the optimal policy u* "
                     "instead of cosine sampling (probability, 0..1)",
         default=_DEFAULTS.guide_fraction, min=0.0, max=1.0, subtype='FACTOR',
     )
     light_share: FloatProperty(
         name="Light Connections",
-        description="UNGUIDED and GUIDED: share of paths that also trace a ray from a light and join its first "
+        description="AUTO, UNGUIDED and GUIDED: share of paths that also trace a ray from a light and join its first "
                     "hit to every diffuse vertex of the path (unbiased; finds light reflected by surfaces "
                     "right beside a lamp). Off while a sample clamp is on, or with transparent materials "
                     "(share, 0..1; 0: off)",
         default=_DEFAULTS.light_share, min=0.0, max=1.0, subtype='FACTOR',
+    )
+    splitting: BoolProperty(
+        name="Splitting",
+        description="GUIDED (also AUTO's guided part): Russian roulette and splitting by the solution: paths "
+                    "that head where the solved LMDP sees much light (through an opening) are kept and split, "
+                    "paths in dim places end sooner (unbiased)",
+        default=_DEFAULTS.splitting,
     )
     light_paths: EnumProperty(
         name="Light Paths",

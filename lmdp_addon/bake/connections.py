@@ -89,6 +89,11 @@ class LightVertices:
         self.first = dict(slot=slot, y=y, ng=ng, tri=t, p_light=p_light, q=q,
                           s_lt=s * E.pdf_area32[e] * p_side * cos_g * INV_PI, base=base.astype(np.float32))
 
+    def extend(self, parents):
+        """New paths (copies of a split, ``splitting``) that share the light vertices of ``parents``."""
+        if self.first is not None:
+            self.first["slot"] = np.concatenate([self.first["slot"], np.take(self.first["slot"], parents)])
+
 
 def _hits(tr, origin, d, stats):
     """``(rows, tri, bu, bv, dist)`` of the rays that hit a connectable triangle, or None."""
@@ -113,6 +118,12 @@ class JoinState:
         self.joined = np.zeros(n, bool)       # y_k joined to its light vertex (set at y_k)
         self.joined_prev = np.zeros(n, bool)  # y_{k-1} was
         self.conn = np.zeros(n, bool)         # y_k connectable
+
+    def extend(self, parents):
+        """New paths (copies of a split, ``splitting``) in the state of ``parents``."""
+        for name in ("pe", "joined", "joined_prev", "conn"):
+            a = getattr(self, name)
+            setattr(self, name, np.concatenate([a, np.take(a, parents)]))
 
     def _kept(self, pe, joined_prev, conn, p_light, q, s_lt):
         """(A + B) / (A + B + C) (module docstring; 1 where C does not count)."""
@@ -230,12 +241,13 @@ def unavailable(mode, clamp, transparency, lights, max_bounces):
 
 def off_reason(scene, settings):
     """Why a bake of ``scene`` with ``settings`` traces no light connections although
-    ``light_share`` > 0 in UNGUIDED or GUIDED (a sentence for the report), or None (they are on,
+    ``light_share`` > 0 in AUTO, UNGUIDED or GUIDED (a sentence for the report), or None (they are on,
     or not asked for): :func:`unavailable`, the tracer's own test."""
     from ..lights import EmitterSampler
     from ..transparency import Transparency
     from .clamp import SampleClamp
-    if settings.light_share <= 0 or settings.bake_mode not in ("UNGUIDED", "GUIDED"):
+    mode = "UNGUIDED" if settings.bake_mode == "AUTO" else settings.bake_mode   # AUTO's parts trace both
+    if settings.light_share <= 0 or mode not in ("UNGUIDED", "GUIDED"):
         return None
-    return unavailable(settings.bake_mode, SampleClamp.from_settings(settings), Transparency.of(scene),
+    return unavailable(mode, SampleClamp.from_settings(settings), Transparency.of(scene),
                        EmitterSampler(scene), settings.max_bounces)

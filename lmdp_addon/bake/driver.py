@@ -41,12 +41,14 @@ import numpy as np
 from ..farm import session as farm_session
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
+from . import auto
 from .checks import check_bake, check_texels, object_index, object_texels
 from .clamp import SampleClamp
 from .content import BakeContent
 from .gather import build_gather
 from .guide import build_guide
 from .residual import ControlVariate
+from .splitting import SplitField
 from .results import ATLAS_NAME, IMAGE_SUFFIX, AtlasBake, BakeResult, ObjectBake
 from .texels import dilate, sample_footprint
 from .tracer import IndirectTracer, TraceStats
@@ -150,15 +152,22 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     del states
     value, stderr = _batch_statistics(acc, acc2, B)
     del acc, acc2
+    return ObjectBake(name=name, texels=ts, triangles=tris, value=value, standard_error=stderr,
+                      image=object_image(ts, value, R, settings.bake_margin),
+                      samples=N, batches=B, stats=stats, seconds=time.perf_counter() - t0)
+
+
+def object_image(ts, value, R, margin):
+    """(R, R, 4) float32 lightmap of the texels ``ts`` with ``value`` (n, 3): alpha 1 where
+    covered, the ``margin`` filled around the islands (``texels.dilate``)."""
     image = np.zeros((R, R, 4), np.float32)
-    if n_tex:
+    if len(ts):
         rgb = ts.to_image(value)
-        filled_rgb, filled = dilate(rgb, ts.covered_mask(), int(settings.bake_margin), return_mask=True)
+        filled_rgb, filled = dilate(rgb, ts.covered_mask(), int(margin), return_mask=True)
         del rgb
         image[..., :3] = filled_rgb
         image[..., 3] = filled.astype(np.float32)
-    return ObjectBake(name=name, texels=ts, triangles=tris, value=value, standard_error=stderr, image=image,
-                      samples=N, batches=B, stats=stats, seconds=time.perf_counter() - t0)
+    return image
 
 
 def _batch_statistics(acc, acc2, B):
@@ -324,18 +333,22 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
             guide = None
         if caster is None and info["same_scene"]:  # same geometry: the build's BVH serves
             caster = lmdp.dynamics.caster
+    split = None
+    if mode == "GUIDED" and getattr(settings, "splitting", False) and lmdp.solution.cost_mode == "PHYSICAL":
+        split = SplitField.from_lmdp(scene, lmdp)     # V: where the paths' light will come from
     tracer = IndirectTracer(scene, mode, max_bounces=settings.max_bounces, guide=guide, gather=gather,
                             guide_fraction=settings.guide_fraction, caster=caster, control=control,
                             content=BakeContent.from_settings(settings),
                             glossy_bounces=settings.glossy_bounces, total_bounces=settings.total_bounces,
                             clamp=SampleClamp.from_settings(settings),
                             min_light_bounces=getattr(settings, "min_light_bounces", 0),
-                            light_share=getattr(settings, "light_share", 0.0))
+                            light_share=getattr(settings, "light_share", 0.0),
+                            splitting=split)
     return tracer, guide, info
 
 
 def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=None, threads=None,
-         plan=None, farm=None):
+         plan=None, farm=None, solve=None):
     """Bake the lightmaps of the objects ``names`` of ``scene`` (module docstring).
 
     scene     :class:`~lmdp_addon.scene_arrays.SceneArrays` to trace (with UVs)
@@ -353,21 +366,83 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
     farm      a :class:`lmdp_addon.farm.Farm` whose workers trace the work units (the result is
               byte-identical); None: the farm in use in this process (``farm.session.use``), if
               any, else ``threads`` local threads
-    Returns :class:`BakeResult`. Raises the errors of :func:`check_bake`, or ``Cancelled``.
+    solve     AUTO without ``lmdp``: ``solve() -> LMDPResult`` samples, builds and solves when the
+              pilot asks for the solution (:mod:`~lmdp_addon.bake.auto`; None: AUTO stays unguided)
+    Returns :class:`BakeResult` (AUTO: its ``auto`` says what was chosen, ``lmdp`` the solution
+    it solved, if any). Raises the errors of :func:`check_bake`, or ``Cancelled``.
     """
     with scene.held():
         if plan is None:
             plan = check_bake(scene, names, settings, lmdp)
+        if settings.bake_mode == "AUTO":
+            return _bake_auto(scene, list(names), settings, lmdp, progress, precompute_seconds, threads, plan,
+                              farm, solve)
         return _bake(scene, list(names), settings, lmdp, progress, precompute_seconds, threads, plan, farm)
 
 
-def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None):
-    """:func:`bake` with the scene's derived geometry held and its plan."""
+def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm, solve):
+    """AUTO (:mod:`~lmdp_addon.bake.auto`): the pilots, the choice, the rest, pooled."""
+    progress = progress if progress is not None else Progress()
+    t0 = time.perf_counter()
+    S = int(settings.bake_samples)
+    n = auto.pilot_samples(S)
+    parts = []
+
+    def part(mode, samples, k, lm=None, made=None):
+        s = auto.part_settings(settings, mode, samples, k)
+        made = made or make_tracer(scene, s, lm)
+        parts.append(_bake(scene, names, s, lm, progress, None, threads, plan, farm, made=made))
+        return parts[-1], made
+
+    seconds = dict(precompute_seconds or {})
+    if n == 0:     # too few samples for pilots: unguided
+        part("UNGUIDED", S, 0)
+        choice = auto.AutoChoice(relative_variance=float("nan"), samples=(("UNGUIDED", S),))
+    else:
+        pilot, unguided = part("UNGUIDED", n, 0)
+        rv = auto.relative_variance(pilot)
+        choice = auto.AutoChoice(relative_variance=rv)
+        if rv < auto.NOISY or (lmdp is None and solve is None):
+            part("UNGUIDED", S - n, 1, made=unguided)
+            choice.samples = (("UNGUIDED", S),)
+        else:
+            if lmdp is None:
+                progress.begin("solve for AUTO")
+                lmdp = solve()
+                progress.end("solved")
+                seconds.update(getattr(lmdp, "seconds", {}) or {})
+                choice.lmdp = lmdp
+            guided_settings = auto.part_settings(settings, "GUIDED", S, 1)   # the guide sized for the bake
+            guided = make_tracer(scene, guided_settings, lmdp)
+            second, _ = part("GUIDED", n, 1, lmdp, made=guided)
+            choice.solved = True
+            choice.guided_gain = auto.efficiency(second) / auto.efficiency(pilot)
+            choice.mode = "GUIDED" if choice.guided_gain > 1.0 else "UNGUIDED"
+            part(choice.mode, S - 2 * n, 2, lmdp if choice.mode == "GUIDED" else None,
+                 made=guided if choice.mode == "GUIDED" else unguided)
+            choice.samples = (("UNGUIDED", n + (S - 2 * n if choice.mode == "UNGUIDED" else 0)),
+                              ("GUIDED", n + (S - 2 * n if choice.mode == "GUIDED" else 0)))
+    choice.parts = tuple((p.mode, p.objects[0].samples if p.objects else 0, p.seconds.get("bake", 0.0))
+                         for p in parts)
+    seconds["bake"] = time.perf_counter() - t0
+    seconds["bake_setup"] = sum(p.seconds.get("bake_setup", 0.0) for p in parts)
+    info = next((p.guide_info for p in parts if p.guide_info), {})
+    warnings = list(plan.warnings) + list(plan.texel_warnings)
+    result = auto.pooled(parts, settings, seconds, warnings, info, choice,
+                         lambda ob: object_image(ob.texels, ob.value, ob.resolution, settings.bake_margin))
+    if plan.atlas and result.objects:
+        result.atlases = [compose_atlas(ATLAS_NAME, result.objects, int(settings.bake_margin))]
+    return result
+
+
+def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None):
+    """:func:`bake` with the scene's derived geometry held and its plan (``made``: the
+    :func:`make_tracer` triple to trace with, made here when None)."""
     progress = progress if progress is not None else Progress()
     check_texels(scene, plan, progress)                # when the plan still needs them
     names = [n for n in names if n in plan.names]      # the texel checks may leave objects out
     t0 = time.perf_counter()
-    tracer, guide, info = make_tracer(scene, settings, lmdp)
+    tracer, guide, info = made if made is not None else make_tracer(scene, settings, lmdp)
     setup = time.perf_counter() - t0
     same = plan.resolution == int(settings.bake_resolution)
     texels = plan.texels if same else {}

@@ -93,34 +93,12 @@ class StateGuide:
 
     def states_at(self, positions, side_normals, objects):
         """Nearest compatible state of arbitrary surface points (exact tree query); -1 if none."""
-        objects = np.asarray(objects)
-        if len(objects) == 0:
-            return np.zeros(0, dtype=np.int64)
-        if self.object_map is not None:
-            objects = np.where(objects >= 0, self.object_map[np.maximum(objects, 0)], -1)
-        return self.locator.locate(np.asarray(positions, dtype=np.float64),
-                                   np.asarray(side_normals, dtype=np.float64), objects, workers=1)
+        return locate_points(self.locator, self.object_map, positions, side_normals, objects)
 
     def states_at_hits(self, tri, bu, bv, positions, side_normals, front, objects):
-        """Nearest compatible state of ray hits (-1: none).
-
-        On the scene the states were sampled on, only front hits on state-carrying triangles
-        have one (the tabulated ``locate_front``): back faces and other geometry carry no states.
-        On another scene every hit is looked up exactly (objects matched by name).
-        """
-        out = np.full(len(tri), -1, dtype=np.int64)
-        if len(tri) == 0:
-            return out
-        if self.same_scene:
-            carrier = front & (self.locator.gu[tri] > 0) if not self.locator.exact else front
-            carrier = np.flatnonzero(carrier)
-            if len(carrier):
-                exact_positions = (rows(positions, carrier).astype(np.float64)
-                                   if self.locator.exact else None)
-                out[carrier] = self.locator.locate_front(tri[carrier], bu[carrier], bv[carrier],
-                                                         exact_positions, workers=1)
-            return out
-        return self.states_at(positions, side_normals, objects)
+        """Nearest compatible state of ray hits (-1: none): :func:`locate_hits`."""
+        return locate_hits(self.locator, self.same_scene, self.object_map, tri, bu, bv, positions, side_normals,
+                           front, objects)
 
     def sample(self, states, u, first, return_density=False):
         """World directions drawn from g_s for ``states (k,)`` with uniforms ``u (k, 2)``
@@ -195,6 +173,38 @@ def _cut_points(cdf):
     target = (np.arange(S) / S - 1e-9)[None, :] + shift
     return (np.searchsorted(offset, target.ravel(), side="right").reshape(m, S)
             - np.arange(m)[:, None] * S).clip(0, S - 1).astype(np.int32)
+
+
+def locate_points(locator, object_map, positions, side_normals, objects):
+    """Nearest compatible state of arbitrary surface points (exact tree query of ``locator``;
+    ``object_map``: the states' object of each traced object, None: the same objects); -1 if none."""
+    objects = np.asarray(objects)
+    if len(objects) == 0:
+        return np.zeros(0, dtype=np.int64)
+    if object_map is not None:
+        objects = np.where(objects >= 0, object_map[np.maximum(objects, 0)], -1)
+    return locator.locate(np.asarray(positions, dtype=np.float64),
+                          np.asarray(side_normals, dtype=np.float64), objects, workers=1)
+
+
+def locate_hits(locator, same_scene, object_map, tri, bu, bv, positions, side_normals, front, objects):
+    """Nearest compatible state of ray hits (-1: none).
+
+    On the scene the states were sampled on (``same_scene``), only front hits on state-carrying
+    triangles have one (the tabulated ``locate_front``): back faces and other geometry carry no
+    states. On another scene every hit is looked up exactly (objects matched by name).
+    """
+    out = np.full(len(tri), -1, dtype=np.int64)
+    if len(tri) == 0:
+        return out
+    if same_scene:
+        carrier = front & (locator.gu[tri] > 0) if not locator.exact else front
+        carrier = np.flatnonzero(carrier)
+        if len(carrier):
+            exact_positions = (rows(positions, carrier).astype(np.float64) if locator.exact else None)
+            out[carrier] = locator.locate_front(tri[carrier], bu[carrier], bv[carrier], exact_positions, workers=1)
+        return out
+    return locate_points(locator, object_map, positions, side_normals, objects)
 
 
 def neighbour_average(rows, locator, normals, neighbours, max_angle=None):

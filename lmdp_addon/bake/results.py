@@ -98,6 +98,8 @@ class BakeResult:
     #: ``LightPaths.as_dict()`` of the path length used (empty: ``settings['max_bounces']``, CUSTOM)
     light_paths: dict = field(default_factory=dict)
     atlases: list = field(default_factory=list)   #: :class:`AtlasBake` of an atlas bake
+    #: AUTO: the ``auto.AutoChoice`` of its parts (None: another mode)
+    auto: object = None
 
     def outputs(self):
         """The images to write: each object that has its own (``ObjectBake``), then each atlas
@@ -159,6 +161,7 @@ class BakeResult:
             "atlases": {a.name: {"image": a.image_name, "resolution": a.resolution, "objects": list(a.members)}
                         for a in self.atlases},
             "warnings": list(self.warnings),
+            **({"auto": self.auto.as_dict()} if self.auto is not None else {}),
         }
 
 

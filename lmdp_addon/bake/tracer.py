@@ -82,9 +82,11 @@ from . import connections
 from .clamp import clamp_light
 from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
+from .splitting import window as splitting_window
 
 MODES = ("UNGUIDED", "GUIDED", "FINAL_GATHER", "RESIDUAL")
 INV_PI = 1.0 / np.pi
+LUMINANCE32 = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
 @dataclass
@@ -143,7 +145,8 @@ class IndirectTracer:
 
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
                  guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None,
-                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0, light_share=0.0):
+                 glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0, light_share=0.0,
+                 splitting=None):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -218,6 +221,11 @@ class IndirectTracer:
             if self.glossy is not None:
                 ok &= ~self.glossy
             self.connectable = ok
+        #: The solution's Russian roulette and splitting (``splitting.SplitField``; None: the
+        #: throughput roulette alone). Off with the clamp (Cycles' own roulette) and in the
+        #: gather modes.
+        self.splitting = splitting if (splitting is not None and self.clamp is None
+                                       and mode in ("UNGUIDED", "GUIDED")) else None
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None, control_out=None,
@@ -273,6 +281,12 @@ class IndirectTracer:
             self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
         if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
             _to_cycles(rho0, idx, _cosine_ratio(w))
+        paths = None
+        if self.splitting is not None:   # V(s_0): the texel's expected light, the window's unit
+            if self.guide is None and triangles is not None:
+                paths = _Paths(self.splitting.at_points(start, gnrm, np.take(self.objects, triangles)))
+            elif self.guide is not None:
+                paths = _Paths(self.splitting.at_states(states))
         lv = joins = None      # light connections (``connections``)
         if self.light_share > 0:
             lv = connections.LightVertices(self, n, rng, stats)
@@ -357,6 +371,8 @@ class IndirectTracer:
             if self.guide is not None:
                 vstates = self.guide.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
                 stats.guided_vertices += int(np.count_nonzero(vstates >= 0))
+            elif paths is not None:   # the window's own lookup (the guide's states serve GUIDED)
+                vstates = self.splitting.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
             # ---- next-event estimation at y_bounce ----
             samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows,
                                           hook=None if joins is None else joins.hook(idx))
@@ -373,8 +389,17 @@ class IndirectTracer:
                 control_out[idx] = beta * (direct + z_ind)
                 if first_hit_only:
                     break
-            # ---- Russian roulette (with the clamp: Cycles', above) ----
-            if bounce >= self.rr_start and self.clamp is None:
+            # ---- Russian roulette (with the clamp: Cycles', above) and splitting ----
+            if paths is not None:
+                L, rr = paths.window(self, L, idx, beta, vstates, bounce, rng, joins, lv)
+                idx, beta, keep = rr
+                pos, nrm, gnrm, lift, vstates = _select_rows(keep, pos, nrm, gnrm, lift, vstates)
+                p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
+                if glossy_rows is not None:
+                    glossy_rows = glossy_rows.select(keep)
+                if len(idx) == 0:
+                    break
+            elif bounce >= self.rr_start and self.clamp is None:
                 q = np.minimum(_channel_max(beta), 1.0)
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
@@ -416,6 +441,8 @@ class IndirectTracer:
                     q_prev = np.take(q_prev, keep)
                 p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
             bounce += 1
+        if paths is not None:
+            L = paths.gathered(L)
         if self.zero_colour and triangles is not None:
             L = _even_colour(L, colour0)
         if self.content.multiply_color:   # Cycles' COLOR filter: times the diffuse colour at x
@@ -725,6 +752,58 @@ class IndirectTracer:
         lobe = np.zeros(len(d), np.int16)
         lobe[g] = microfacet
         return d, w, beta, q, lobe
+
+
+class _Paths:
+    """The paths of one :meth:`IndirectTracer.trace` call when the solution's window splits them:
+    copies get path numbers of their own beyond the n texel paths (their light, light vertex
+    and balance-heuristic state are per path number), ``owner`` the texel path of each."""
+
+    def __init__(self, v0):
+        self.n = len(v0)
+        self.owner = np.arange(self.n)
+        self.v0 = v0
+
+    def window(self, tr, L, idx, beta, vstates, bounce, rng, joins, lv):
+        """``(L, (idx, beta, rows))``: the window of ``splitting`` at the vertices (states
+        ``vstates``) of the paths ``idx`` (the throughput roulette where V is unknown): the
+        rows kept ``rows`` (increasing, repeated for copies), the paths' numbers (copies get new
+        ones) and the survivors' β."""
+        v = tr.splitting.at_states(vstates)
+        v0 = np.take(self.v0, idx)
+        known = (v > 0) & (v0 > 0)
+        lum = beta @ LUMINANCE32
+        ratio = np.where(known, lum * v / np.where(known, v0, 1.0), 0.0)
+        roulette = bounce >= tr.rr_start
+        p, copies = splitting_window(ratio, known, np.full(len(idx), roulette), rng)
+        if roulette:    # the throughput roulette where the solution says nothing
+            p = np.where(known, p, np.minimum(_channel_max(beta), 1.0))
+        u = rng.random(len(idx))
+        survive = np.flatnonzero(u < p)
+        scale = (1.0 / (p[survive] * copies[survive])).astype(np.float32)
+        keep = np.repeat(survive, copies[survive])
+        beta = np.take(beta, keep, axis=0) * np.repeat(scale, copies[survive])[:, None]
+        new_idx = np.take(idx, keep)
+        extra = np.flatnonzero(np.r_[False, keep[1:] == keep[:-1]]) if len(keep) else keep
+        if len(extra):      # copies after the first: new path numbers
+            parents = new_idx[extra]
+            first_new = len(self.owner)
+            new_idx[extra] = first_new + np.arange(len(extra))
+            self.owner = np.concatenate([self.owner, np.take(self.owner, parents)])
+            self.v0 = np.concatenate([self.v0, np.take(self.v0, parents)])
+            L = np.concatenate([L, np.zeros((len(extra), 3), np.float32)])
+            if joins is not None:
+                joins.extend(parents)
+                lv.extend(parents)
+        return L, (new_idx, beta, keep)
+
+    def gathered(self, L):
+        """The (n, 3) light of the texel paths: each copy's added to its texel path's."""
+        if len(self.owner) == self.n:
+            return L
+        out = L[:self.n].copy()
+        np.add.at(out, self.owner[self.n:], L[self.n:])
+        return out
 
 
 def _cosine_ratio(w):

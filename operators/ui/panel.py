@@ -339,11 +339,14 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         column.prop(props, "bake_margin")
         _lightmap_layout(layout, props)
         row = layout.row()
-        row.active = props.bake_mode in ('GUIDED', 'FINAL_GATHER')   # both draw their first bounce from u*
+        row.active = props.bake_mode in ('AUTO', 'GUIDED', 'FINAL_GATHER')   # they draw bounces from u*
         row.prop(props, "guide_fraction")
         row = layout.row()
-        row.active = props.bake_mode in ('UNGUIDED', 'GUIDED')   # the path tracers join light vertices
+        row.active = props.bake_mode in ('AUTO', 'UNGUIDED', 'GUIDED')   # the path tracers join light vertices
         row.prop(props, "light_share")
+        row = layout.row()
+        row.active = props.bake_mode in ('AUTO', 'GUIDED')   # the solution's roulette and splitting
+        row.prop(props, "splitting")
         layout.prop(props, "light_paths")
         column = layout.column(align=True)
         column.active = props.light_paths == 'CUSTOM'   # SCENE: the scene's Cycles Light Paths decide
