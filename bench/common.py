@@ -9,9 +9,9 @@ import sys
 import time
 from pathlib import Path
 
-#: The method run with the default settings (UNGUIDED with light connections): issue 20's
+#: The method run with the default settings (AUTO: ``lmdp_addon.bake.auto``): issue 20's
 #: "default mode" in the profiles (``run``) and their verdicts (``report_bake``).
-DEFAULT_NAME = "UNGUIDED + light connections (default)"
+DEFAULT_NAME = "AUTO (default)"
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"

@@ -77,7 +77,9 @@ class CyclesBake:
 
 class LMDPBake:
     """This project's bake (``lmdp_addon.bake.driver.bake``) in one ``bake_mode``, with the LMDP
-    precompute of ``settings`` for GUIDED, FINAL_GATHER and RESIDUAL."""
+    precompute of ``settings`` for GUIDED, FINAL_GATHER and RESIDUAL. AUTO solves inside the
+    timed bake when its pilot asks for the solution (``pipeline.run_all``, as the Bake operator
+    does), so its wall time includes that precompute."""
 
     def __init__(self, mode, ladder, name=None, **settings):
         self.family = mode
@@ -102,7 +104,7 @@ class LMDPBake:
         return {k: getattr(s, k) for k in keys}
 
     def prepare(self, case, seed):
-        if self.family == "UNGUIDED":
+        if self.family in ("UNGUIDED", "AUTO"):
             return Prepared()
         from lmdp_addon.model import pipeline
         settings = self.settings(case, seed=seed)
@@ -121,15 +123,18 @@ class LMDPBake:
 
     def bake(self, case, prepared, samples, seed):
         from lmdp_addon.bake import driver as baking
+        from lmdp_addon.model import pipeline
         settings = self.settings(case, samples, seed)
+        solve = (lambda: pipeline.run_all(case.scene, settings)) if self.family == "AUTO" else None
         with Stopwatch() as sw:
-            result = baking.bake(case.scene, [case.receiver], settings, prepared.state)
+            result = baking.bake(case.scene, [case.receiver], settings, prepared.state, solve=solve)
         ob = result.objects[0]
         image = ob.texels.to_image(ob.value.astype(np.float32))
         rays = int(ob.stats.total_rays)
         return BakeRun(values=image[case.rows, case.cols].astype(np.float64), seconds=sw.seconds,
                        info={"rays": rays, "texels": int(ob.n_texels),
-                             "bake_seconds": {k: float(v) for k, v in result.seconds.items()}})
+                             "bake_seconds": {k: float(v) for k, v in result.seconds.items()},
+                             **({"auto": result.auto.as_dict()} if result.auto is not None else {})})
 
 
 def lmdp_bake_available():

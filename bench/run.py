@@ -61,10 +61,11 @@ def profiles():
         lmdp_methods=[
             # the reference: plain path tracing (no light connections)
             dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder, settings={"light_share": 0.0}),
-            dict(mode="UNGUIDED", name=DEFAULT_NAME, ladder=ladder),
+            dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=ladder),
+            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 64, 256)),
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts (defaults)", ladder=(16, 64, 256)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=ladder),
-            dict(mode="GUIDED", name="GUIDED without splitting", ladder=ladder, settings={"splitting": False}),
+            dict(mode="GUIDED", name="GUIDED without splitting", ladder=(16, 64, 256), settings={"splitting": False}),
             dict(mode="GUIDED", name="GUIDED THESIS λ x0.01", ladder=(4, 16, 64), cases=light,
                  settings={"cost_mode": "THESIS", "lambda_scale": 0.01}),
             dict(mode="GUIDED", name="GUIDED THESIS λ x1", ladder=(4, 16, 64), cases=light,
@@ -87,7 +88,8 @@ def profiles():
         cycles_guided_ladder={"cornell": (16, 64), "narrow_opening": (16, 64)},
         lmdp_methods=[
             dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64), settings={"light_share": 0.0}),
-            dict(mode="UNGUIDED", name=DEFAULT_NAME, ladder=(4, 16, 64)),
+            dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=(4, 16, 64)),
+            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 64)),
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts", ladder=(16, 64)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=(4, 16, 64)),
             dict(mode="GUIDED", name="GUIDED without splitting", ladder=(4, 16, 64), settings={"splitting": False}),

@@ -4,7 +4,7 @@ A bake of S samples per texel runs in parts, each an ordinary bake with its own 
 (seed ``AUTO_PARTS · seed + part``), and the parts are pooled with fixed weights (their sample
 counts), so the result is unbiased whatever is decided between them:
 
-1. *Pilot*: n = S / 16 samples (at least 2; none below 16) (:func:`pilot_samples`) UNGUIDED with light connections. Its
+1. *Pilot*: n = S / 32 samples (at least 2; below 64 samples no pilot: all unguided) (:func:`pilot_samples`) UNGUIDED with light connections. Its
    relative variance per path, ``Σ n se² / (texels · mean²)`` over every baked texel and
    channel, says how hard the scene is for unguided paths. Below :data:`NOISY` (measured:
    Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy box 10-11 per path; light through a
@@ -12,8 +12,10 @@ counts), so the result is unbiased whatever is decided between them:
 2. Noisy: the LMDP is sampled, built and solved (or the given solution reused) and another n
    samples are traced GUIDED (the fine guide, light connections, the solution's Russian
    roulette and splitting: :mod:`~lmdp_addon.bake.splitting`).
-3. The last S − 2n samples go to whichever of the two was more efficient per path on its
-   pilot, 1 / (variance per path x seconds per path), its tracer reused.
+3. The last S − 2n samples go to whichever of the two was more efficient on its pilot,
+   1 / (variance per path x cost per path), the cost counted in rays (a GUIDED ray
+   :data:`GUIDED_RAY_COST` times an unguided one), its tracer reused. Counts, not clocks: the
+   bake stays the same for a seed whatever the machine or thread count.
 
 ``AutoChoice`` records what was measured and chosen; the Bake report prints it.
 """
@@ -26,11 +28,19 @@ from .results import BakeResult, ObjectBake
 #: Random streams of one AUTO bake: part k uses seed ``AUTO_PARTS * seed + k``.
 AUTO_PARTS = 4
 #: Share of the samples in each pilot (1 / PILOT_SHARE, at least :data:`MIN_PILOT` samples).
-PILOT_SHARE = 16
+PILOT_SHARE = 32
 #: Fewest samples per texel of a pilot (two batches: a standard error).
 MIN_PILOT = 2
+#: Fewest samples per texel of a bake with pilots: below, the solve and the parts' own costs
+#: outweigh what guiding the rest could gain (measured on the narrow opening at 16 samples:
+#: 0.75-0.84x plain path tracing's efficiency with pilots, 0.9-1.0x without).
+MIN_SAMPLES = 64
 #: Relative variance per path of the unguided pilot above which the LMDP is solved.
 NOISY = 25.0
+#: Time of a GUIDED ray over an UNGUIDED one, both with light connections (the guide's lookups
+#: and mixture densities; measured on the narrow opening at 64 and 256 samples: 1.46x the time per
+#: path for 1.13x the rays).
+GUIDED_RAY_COST = 1.3
 
 
 @dataclass
@@ -62,7 +72,7 @@ class AutoChoice:
 def pilot_samples(samples):
     """Samples per texel of each pilot of an AUTO bake of ``samples`` (0: too few to split)."""
     samples = int(samples)
-    return max(samples // PILOT_SHARE, MIN_PILOT) if samples >= 8 * MIN_PILOT else 0
+    return max(samples // PILOT_SHARE, MIN_PILOT) if samples >= MIN_SAMPLES else 0
 
 
 def relative_variance(result):
@@ -77,14 +87,15 @@ def relative_variance(result):
     return float(np.mean(np.concatenate(var)) / mean ** 2) if mean > 0 else 0.0
 
 
-def efficiency(result):
-    """1 / (variance per path x seconds per path) of a bake, the variance averaged over its texels
-    and channels (the tracing time only: setup and precompute are paid once)."""
+def efficiency(result, ray_cost=1.0):
+    """1 / (variance per path x cost per path) of a bake, the variance averaged over its texels and
+    channels, the cost its rays per path times ``ray_cost`` (a count, not a clock: the choice, and
+    so the bake, is the same for a seed on any machine and thread count)."""
     var = np.mean(np.concatenate([np.square(ob.standard_error.astype(np.float64)) * ob.samples
                                   for ob in result.objects if ob.n_texels]))
     paths = sum(ob.n_texels * ob.samples for ob in result.objects)
-    seconds = sum(ob.seconds for ob in result.objects)
-    return 1.0 / max(var * seconds / max(paths, 1), 1e-300)
+    rays = sum(ob.stats.total_rays for ob in result.objects)
+    return 1.0 / max(var * ray_cost * rays / max(paths, 1), 1e-300)
 
 
 def part_settings(settings, mode, samples, part):

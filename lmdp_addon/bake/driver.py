@@ -416,7 +416,7 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
             guided = make_tracer(scene, guided_settings, lmdp)
             second, _ = part("GUIDED", n, 1, lmdp, made=guided)
             choice.solved = True
-            choice.guided_gain = auto.efficiency(second) / auto.efficiency(pilot)
+            choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(pilot)
             choice.mode = "GUIDED" if choice.guided_gain > 1.0 else "UNGUIDED"
             part(choice.mode, S - 2 * n, 2, lmdp if choice.mode == "GUIDED" else None,
                  made=guided if choice.mode == "GUIDED" else unguided)

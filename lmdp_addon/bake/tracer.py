@@ -392,8 +392,8 @@ class IndirectTracer:
             # ---- Russian roulette (with the clamp: Cycles', above) and splitting ----
             if paths is not None:
                 L, rr = paths.window(self, L, idx, beta, vstates, bounce, rng, joins, lv)
-                idx, beta, keep = rr
-                pos, nrm, gnrm, lift, vstates = _select_rows(keep, pos, nrm, gnrm, lift, vstates)
+                idx, beta, keep = rr       # rows: increasing, repeated for the copies
+                pos, nrm, gnrm, lift, vstates = _taken_rows(keep, pos, nrm, gnrm, lift, vstates)
                 p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
                 if glossy_rows is not None:
                     glossy_rows = glossy_rows.select(keep)
@@ -780,11 +780,14 @@ class _Paths:
             p = np.where(known, p, np.minimum(_channel_max(beta), 1.0))
         u = rng.random(len(idx))
         survive = np.flatnonzero(u < p)
-        scale = (1.0 / (p[survive] * copies[survive])).astype(np.float32)
-        keep = np.repeat(survive, copies[survive])
-        beta = np.take(beta, keep, axis=0) * np.repeat(scale, copies[survive])[:, None]
+        n = copies[survive]
+        scale = (1.0 / (p[survive] * n)).astype(np.float32)
+        if np.all(n == 1):     # no copies: the survivors alone
+            return L, (np.take(idx, survive), np.take(beta, survive, axis=0) * scale[:, None], survive)
+        keep = np.repeat(survive, n)
+        beta = np.take(beta, keep, axis=0) * np.repeat(scale, n)[:, None]
         new_idx = np.take(idx, keep)
-        extra = np.flatnonzero(np.r_[False, keep[1:] == keep[:-1]]) if len(keep) else keep
+        extra = np.flatnonzero(np.r_[False, keep[1:] == keep[:-1]])
         if len(extra):      # copies after the first: new path numbers
             parents = new_idx[extra]
             first_new = len(self.owner)
@@ -869,6 +872,17 @@ def _select_rows(index, *arrays):
     first = next((a for a in arrays if a is not None), None)
     if first is not None and len(index) == len(first):
         return arrays
+    taken = {}
+    for a in arrays:
+        if a is not None and id(a) not in taken:
+            taken[id(a)] = np.take(a, index, axis=0)
+    return tuple(None if a is None else taken[id(a)] for a in arrays)
+
+
+def _taken_rows(index, *arrays):
+    """The rows ``index`` (increasing, possibly repeated: the copies of split paths) of every
+    array, each distinct array gathered once (as :func:`_select_rows`, without its shortcut: a
+    wavefront of as many rows may hold other ones); None stays None."""
     taken = {}
     for a in arrays:
         if a is not None and id(a) not in taken:

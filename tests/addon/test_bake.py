@@ -403,3 +403,40 @@ def test_the_capture_sees_through_the_addons_own_hook_up(cornell, lmdp_ext, hook
     np.testing.assert_allclose(after.triangle_albedo, before.triangle_albedo)
     np.testing.assert_allclose(after.triangle_emission, before.triangle_emission)
     assert not any("LMDP" in w for w in after.warnings), after.warnings
+
+
+def test_the_default_auto_bake_solves_only_where_unguided_paths_are_noisy(fresh_scene, lmdp_ext, tmp_path):
+    """AUTO (the default): the room lit only through a hatch is noisy for unguided paths, so the
+    bake solves the LMDP itself, keeps the solution in the session and traces the rest GUIDED if
+    that wins; the next bake reuses it. The Cornell box is quiet: no solve."""
+    assert fresh_scene.lmdp.bake_mode == 'AUTO'
+    assert bpy.ops.lmdp.add_demo_scene(kind='NARROW_OPENING') == {'FINISHED'}
+    s = fresh_scene.lmdp
+    s.point_count, s.rays_per_stratum, s.light_samples = 400, 2, 8
+    s.bake_resolution, s.bake_samples, s.bake_margin = 16, 32, 2
+    s.output_dir = str(tmp_path)
+    only("RoomAFloor")
+    store = session(lmdp_ext, fresh_scene)
+    assert store.result.solution is None
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    baked = store.require("bake")
+    assert baked.mode == "AUTO" and baked.auto.solved and baked.auto.relative_variance > 25
+    assert sum(n for _, n in baked.auto.samples) == 32
+    first = store.result
+    assert first.solution is not None and baked.auto.lmdp is first      # kept for the next bake
+    stats = json.loads((tmp_path / "bake_stats.json").read_text())
+    assert stats["auto"]["solved"] and stats["mode"] == "AUTO"
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    assert store.result is first and store.require("bake").auto.lmdp is None   # reused, not solved again
+    assert store.require("bake").object("RoomAFloor").value.mean() > 0.005
+
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    assert bpy.ops.lmdp.add_demo_scene(kind='CORNELL_BOX') == {'FINISHED'}
+    s = bpy.context.scene.lmdp
+    s.bake_resolution, s.bake_samples, s.bake_margin = 16, 32, 2
+    only("Floor")
+    store = session(lmdp_ext, bpy.context.scene)
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}
+    baked = store.require("bake")
+    assert baked.mode == "AUTO" and not baked.auto.solved and baked.auto.samples == (("UNGUIDED", 32),)
+    assert store.result.solution is None                                # quiet: nothing solved

@@ -196,6 +196,28 @@ def test_default_bake_with_light_connections_is_unbiased_against_cycles(fresh_sc
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("kind, name, solved", [("CORNELL_BOX", "TallBox", False), ("NARROW_OPENING", "RoomAFloor", True),
+                                                ("HEAVY", "Floor", False)])
+def test_the_default_auto_bake_is_unbiased_against_cycles(fresh_scene, lmdp_ext, demo, kind, name, solved):
+    """The default mode, AUTO (``bake/auto.py``), on the three scenes of the RESIDUAL test: the
+    mean of the texels within 5 standard errors of both estimates of Cycles' 2 x 4096-sample bake
+    and within 2 % where the comparison resolves it (1 s.e. below 0.5 %). Through the narrow
+    opening its pilot is noisy, so it solves the LMDP during the bake and traces the rest GUIDED
+    with the solution's roulette and splitting; the boxes stay unguided."""
+    build(kind, lmdp_ext)
+    assert fresh_scene.lmdp.bake_mode == 'AUTO'
+    refs = reference(lmdp_ext, demo, name, 16, 4096)
+    ob = lmdp_bake(lmdp_ext, name, "AUTO", 16, 4096)
+    auto = lmdp_ext.sub("operators.session").session_for(fresh_scene).require("bake").auto
+    assert auto.solved == solved and (auto.mode == "GUIDED") == solved, auto
+    ours, cyc, var_o, var_c = compare(ob, refs)
+    rel, rel_sigma = assert_means_agree(ours, cyc, var_o, var_c)
+    print(f"AUTO vs Cycles, {kind} {name}: {100 * rel} % ± {100 * rel_sigma} % (1 s.e.); {auto.sentence()}")
+    if np.all(rel_sigma < 0.005):
+        assert np.all(np.abs(rel) < 0.02), rel
+
+
+@pytest.mark.slow
 def test_guided_has_lower_variance_than_unguided_through_a_narrow_opening(fresh_scene, lmdp_ext):
     """Room A is lit only through the hatch. Same texels, same samples, 8 x 8 strata: GUIDED's
     per-texel variances (from its batches) are lower than UNGUIDED's. Each texel's log variance
