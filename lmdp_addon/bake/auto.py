@@ -4,7 +4,7 @@ A bake of S samples per texel runs in parts, each an ordinary bake with its own 
 (seed ``AUTO_PARTS · seed + part``), and the parts are pooled with fixed weights (their sample
 counts), so the result is unbiased whatever is decided between them:
 
-1. *Pilot*: n = S / 32 samples (at least 2; below 64 samples no pilot: all unguided) (:func:`pilot_samples`) UNGUIDED with light connections. Its
+1. *Pilot*: n = S / 32 samples (at least 2; below 16 samples no pilot: all unguided) (:func:`pilot_samples`) UNGUIDED with light connections. Its
    relative variance per path, ``Σ n se² / (texels · mean²)`` over every baked texel and
    channel, says how hard the scene is for unguided paths. Below :data:`NOISY` (measured:
    Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy box 10-11 per path; light through a
@@ -31,10 +31,9 @@ AUTO_PARTS = 4
 PILOT_SHARE = 32
 #: Fewest samples per texel of a pilot (two batches: a standard error).
 MIN_PILOT = 2
-#: Fewest samples per texel of a bake with pilots: below, the solve and the parts' own costs
-#: outweigh what guiding the rest could gain (measured on the narrow opening at 16 samples:
-#: 0.75-0.84x plain path tracing's efficiency with pilots, 0.9-1.0x without).
-MIN_SAMPLES = 64
+#: Fewest samples per texel of a bake with pilots (each at least :data:`MIN_PILOT`): below, the
+#: solve and the parts' own costs outweigh what guiding the rest could gain.
+MIN_SAMPLES = 16
 #: Relative variance per path of the unguided pilot above which the LMDP is solved.
 NOISY = 25.0
 #: Time of a GUIDED ray over an UNGUIDED one, both with light connections (the guide's lookups
