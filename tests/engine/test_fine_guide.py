@@ -130,7 +130,8 @@ def test_thesis_solutions_keep_the_strata_guide_and_g_follows_the_budget(cornell
     assert guide.n_strata == 16 and not hasattr(guide, "info")
     assert fine_guide.fine_resolution(2048) == 16
     assert fine_guide.fine_resolution(8192) == 8
-    assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 64) == 8       # 1/8 ray per path
+    assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 64) == 16      # 1/2 ray per path
+    assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 16) == 8
     assert fine_guide.fine_resolution(10 ** 6) == 4
     assert fine_guide.fine_resolution(10 ** 6, minimum=8) == 8              # never below the strata
 
