@@ -390,8 +390,9 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
 
     def part(mode, samples, k, lm=None, made=None):
         s = auto.part_settings(settings, mode, samples, k)
-        made = made or make_tracer(scene, s, lm)
-        parts.append(_bake(scene, names, s, lm, progress, None, threads, plan, farm, made=made))
+        made = made or (make_tracer(scene, s, lm), s)
+        parts.append(_bake(scene, names, s, lm, progress, None, threads, plan, farm, made=made[0],
+                           tracer_settings=made[1]))
         return parts[-1], made
 
     seconds = dict(precompute_seconds or {})
@@ -413,7 +414,7 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
                 seconds.update(getattr(lmdp, "seconds", {}) or {})
                 choice.lmdp = lmdp
             guided_settings = auto.part_settings(settings, "GUIDED", S, 1)   # the guide sized for the bake
-            guided = make_tracer(scene, guided_settings, lmdp)
+            guided = (make_tracer(scene, guided_settings, lmdp), guided_settings)
             second, _ = part("GUIDED", n, 1, lmdp, made=guided)
             choice.solved = True
             choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(pilot)
@@ -435,20 +436,23 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
     return result
 
 
-def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None):
+def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None,
+          tracer_settings=None):
     """:func:`bake` with the scene's derived geometry held and its plan (``made``: the
-    :func:`make_tracer` triple to trace with, made here when None)."""
+    :func:`make_tracer` triple to trace with, made here of ``tracer_settings`` when None, by
+    default ``settings``; a farm's workers make theirs of the same)."""
     progress = progress if progress is not None else Progress()
     check_texels(scene, plan, progress)                # when the plan still needs them
     names = [n for n in names if n in plan.names]      # the texel checks may leave objects out
     t0 = time.perf_counter()
-    tracer, guide, info = made if made is not None else make_tracer(scene, settings, lmdp)
+    tracer_settings = tracer_settings if tracer_settings is not None else settings
+    tracer, guide, info = made if made is not None else make_tracer(scene, tracer_settings, lmdp)
     setup = time.perf_counter() - t0
     same = plan.resolution == int(settings.bake_resolution)
     texels = plan.texels if same else {}
     objects = []
     farm = farm if farm is not None else farm_session.current()
-    with farm.bake_units(scene, settings, lmdp) if farm is not None else nullcontext() as runner:
+    with farm.bake_units(scene, tracer_settings, lmdp) if farm is not None else nullcontext() as runner:
         for number, name in enumerate(names):
             progress.begin(f"bake {name}")
             index = object_index(scene, name)

@@ -74,6 +74,19 @@ def test_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved, farm, ma
     assert_same_bake(local, remote)
 
 
+def test_an_auto_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved, farm, many_units, monkeypatch):
+    """AUTO's parts on the farm (its guided part forced: every pilot counts as noisy): the workers
+    build the tracer the local bake traces each part with (the GUIDED guide sized for the whole bake)."""
+    from lmdp_addon.bake import auto
+    monkeypatch.setattr(auto, "NOISY", 0.0)
+    settings = small(bake_mode="AUTO", bake_samples=32)
+    local = driver.bake(cornell, NAMES, settings, lmdp=solved)
+    assert local.auto.solved and len(local.auto.parts) == 3
+    remote = farm_api.bake(cornell, NAMES, settings, lmdp=solved, farm=farm)
+    assert remote.auto.as_dict()["parts"][0][:2] == local.auto.as_dict()["parts"][0][:2]
+    assert_same_bake(local, remote)
+
+
 def test_a_clamped_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved, farm, many_units):
     """The sample clamp and its roulette travel with the settings (bake/clamp.py)."""
     settings = small(bake_mode="GUIDED", bake_content="DIRECT_INDIRECT", clamp_direct=1.0, clamp_indirect=0.5,
