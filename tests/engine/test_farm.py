@@ -79,10 +79,10 @@ def test_an_auto_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved, 
     build the tracer the local bake traces each part with (the GUIDED guide sized for the whole bake)."""
     from lmdp_addon.bake import auto
     monkeypatch.setattr(auto, "NOISY", 0.0)
-    settings = small(bake_mode="AUTO", bake_samples=32)
-    local = driver.bake(cornell, NAMES, settings, lmdp=solved)
-    assert local.auto.solved and len(local.auto.parts) == 3
-    remote = farm_api.bake(cornell, NAMES, settings, lmdp=solved, farm=farm)
+    settings = small(bake_mode="AUTO", bake_samples=128)   # the guide: G = 8 for 128 samples, 4 for a pilot's 4
+    local = driver.bake(cornell, ["Floor"], settings, lmdp=solved)
+    assert local.auto.solved and len(local.auto.parts) == 3 and local.guide_info["fine_resolution"] == 8
+    remote = farm_api.bake(cornell, ["Floor"], settings, lmdp=solved, farm=farm)
     assert remote.auto.as_dict()["parts"][0][:2] == local.auto.as_dict()["parts"][0][:2]
     assert_same_bake(local, remote)
 
