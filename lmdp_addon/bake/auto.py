@@ -9,7 +9,8 @@ counts), so the result is unbiased whatever is decided between them:
    channel, says how hard the scene is for unguided paths. Below :data:`NOISY` (measured:
    Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy box 10-11 per path; light through a
    hatch 77-82) the remaining S − n samples are traced the same way, with no solve.
-2. Noisy: the LMDP is sampled, built and solved (or the given solution reused) and another n
+2. Noisy (and the rest of the bake at least 1 / :data:`SOLVE_SHARE` times the build's rays, or a
+   solution given): the LMDP is sampled, built and solved (or the given solution reused) and another n
    samples are traced GUIDED (the fine guide, light connections, the solution's Russian
    roulette and splitting: :mod:`~lmdp_addon.bake.splitting`).
 3. The last S − 2n samples go to whichever of the two was more efficient on its pilot,
@@ -40,6 +41,10 @@ NOISY = 25.0
 #: and mixture densities; measured on the narrow opening at 64 and 256 samples: 1.46x the time per
 #: path for 1.13x the rays).
 GUIDED_RAY_COST = 1.3
+#: Largest share of the rest of the bake's rays that the LMDP's build may cost (its rays: points x
+#: (strata x rays per stratum + light samples)); a smaller bake stays unguided. GUIDED gained
+#: 2-3x on the rest where the pilot was noisy, so a build of half the rest's rays still pays.
+SOLVE_SHARE = 0.5
 
 
 @dataclass
@@ -48,6 +53,7 @@ class AutoChoice:
 
     relative_variance: float               #: of the unguided pilot, per path
     solved: bool = False                   #: the LMDP was solved (or reused) and piloted
+    too_small: bool = False                #: noisy, but the rest too small to pay for a solve
     guided_gain: float = float("nan")      #: GUIDED's efficiency over UNGUIDED's on the pilots
     mode: str = "UNGUIDED"                 #: the mode of the remaining samples
     samples: tuple = ()                    #: (mode, samples) of the whole bake
@@ -56,6 +62,10 @@ class AutoChoice:
 
     def sentence(self):
         """The Bake report's line."""
+        if self.too_small:
+            return (f"AUTO: unguided paths were noisy (relative variance {self.relative_variance:.3g} per path), "
+                    "but the bake is too small to pay for solving the LMDP: UNGUIDED with light connections "
+                    "(more samples or texels, or a solution in the session, let it guide)")
         if not self.solved:
             return (f"AUTO: unguided paths were quiet (relative variance {self.relative_variance:.3g} per path, "
                     f"below {NOISY:g}): no solve, UNGUIDED with light connections")
@@ -95,6 +105,17 @@ def efficiency(result, ray_cost=1.0):
     paths = sum(ob.n_texels * ob.samples for ob in result.objects)
     rays = sum(ob.stats.total_rays for ob in result.objects)
     return 1.0 / max(var * ray_cost * rays / max(paths, 1), 1e-300)
+
+
+def worth_solving(pilot, settings, remaining):
+    """Whether the LMDP's build (its rays) costs at most :data:`SOLVE_SHARE` of the rays the rest
+    of the bake (``remaining`` samples per texel) will trace, at the pilot's rays per path."""
+    paths = sum(ob.n_texels * ob.samples for ob in pilot.objects)
+    per_path = sum(ob.stats.total_rays for ob in pilot.objects) / max(paths, 1)
+    texels = sum(ob.n_texels for ob in pilot.objects)
+    build = int(settings.point_count) * (int(settings.strata_u) * int(settings.strata_v) * int(settings.rays_per_stratum)
+                                         + int(settings.light_samples))
+    return build <= SOLVE_SHARE * per_path * texels * int(remaining)
 
 
 def part_settings(settings, mode, samples, part):

@@ -403,7 +403,8 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
         pilot, unguided = part("UNGUIDED", n, 0)
         rv = auto.relative_variance(pilot)
         choice = auto.AutoChoice(relative_variance=rv)
-        if rv < auto.NOISY or (lmdp is None and solve is None):
+        choice.too_small = rv >= auto.NOISY and lmdp is None and not auto.worth_solving(pilot, settings, S - n)
+        if rv < auto.NOISY or (lmdp is None and (solve is None or choice.too_small)):
             part("UNGUIDED", S - n, 1, made=unguided)
             choice.samples = (("UNGUIDED", S),)
         else:
