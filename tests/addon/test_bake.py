@@ -413,15 +413,18 @@ def test_the_default_auto_bake_solves_only_where_unguided_paths_are_noisy(fresh_
     assert bpy.ops.lmdp.add_demo_scene(kind='NARROW_OPENING') == {'FINISHED'}
     s = fresh_scene.lmdp
     s.point_count, s.rays_per_stratum, s.light_samples = 400, 2, 8
-    s.bake_resolution, s.bake_samples, s.bake_margin = 16, 32, 2
+    s.bake_resolution, s.bake_samples, s.bake_margin = 16, 16, 2
     s.output_dir = str(tmp_path)
     only("RoomAFloor")
     store = session(lmdp_ext, fresh_scene)
-    assert store.result.solution is None
+    assert bpy.ops.lmdp.bake() == {'FINISHED'}        # noisy, but 16² x 16 would not pay for the solve
+    baked = store.require("bake")
+    assert baked.auto.too_small and not baked.auto.solved and store.result.solution is None
+    s.bake_resolution, s.bake_samples = 32, 64
     assert bpy.ops.lmdp.bake() == {'FINISHED'}
     baked = store.require("bake")
     assert baked.mode == "AUTO" and baked.auto.solved and baked.auto.relative_variance > 25
-    assert sum(n for _, n in baked.auto.samples) == 32
+    assert sum(n for _, n in baked.auto.samples) == 64
     first = store.result
     assert first.solution is not None and baked.auto.lmdp is first      # kept for the next bake
     stats = json.loads((tmp_path / "bake_stats.json").read_text())
