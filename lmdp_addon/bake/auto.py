@@ -4,7 +4,7 @@ A bake of S samples per texel runs in parts, each an ordinary bake with its own 
 (seed ``AUTO_PARTS · seed + part``), and the parts are pooled with fixed weights (their sample
 counts), so the result is unbiased whatever is decided between them:
 
-1. *Pilot*: n = S / 16 samples (at least 2; none below 16) (:func:`pilot_samples`) UNGUIDED with light connections. Its
+1. *Pilot*: n = S / 16 samples (even, at least 2; none below 16) (:func:`pilot_samples`) UNGUIDED with light connections. Its
    relative variance per path, ``Σ n se² / (texels · mean²)`` over every baked texel and
    channel, says how hard the scene is for unguided paths. Below :data:`NOISY` (measured:
    Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy box 10-11 per path; light through a
@@ -60,9 +60,11 @@ class AutoChoice:
 
 
 def pilot_samples(samples):
-    """Samples per texel of each pilot of an AUTO bake of ``samples`` (0: too few to split)."""
+    """Samples per texel of each pilot of an AUTO bake of ``samples`` (0: too few to split):
+    S / 16 rounded down to an even number, so that the pilot has at least two batches and a
+    standard error (``driver.batch_count``; 11 samples would be one batch, NaN errors)."""
     samples = int(samples)
-    return max(samples // PILOT_SHARE, MIN_PILOT) if samples >= 8 * MIN_PILOT else 0
+    return max(samples // PILOT_SHARE // 2 * 2, MIN_PILOT) if samples >= 8 * MIN_PILOT else 0
 
 
 def relative_variance(result):
