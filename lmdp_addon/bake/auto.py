@@ -13,7 +13,8 @@ counts), so the result is unbiased whatever is decided between them:
    samples are traced GUIDED (the fine guide, light connections, the solution's Russian
    roulette and splitting: :mod:`~lmdp_addon.bake.splitting`).
 3. The last S − 2n samples go to whichever of the two was more efficient per path on its
-   pilot, 1 / (variance per path x seconds per path), its tracer reused.
+   pilot, 1 / (variance per path x rays per path: not seconds, so that the choice is
+   deterministic for a seed), its tracer reused.
 
 ``AutoChoice`` records what was measured and chosen; the Bake report prints it.
 """
@@ -80,13 +81,14 @@ def relative_variance(result):
 
 
 def efficiency(result):
-    """1 / (variance per path x seconds per path) of a bake, the variance averaged over its texels
-    and channels (the tracing time only: setup and precompute are paid once)."""
+    """1 / (variance per path x rays per path) of a bake, the variance averaged over its texels
+    and channels, the cost its rays (closest-hit and shadow: ``TraceStats.total_rays``), not its
+    seconds: the choice, hence the bake, is then the same for a seed on any machine and load."""
     var = np.mean(np.concatenate([np.square(ob.standard_error.astype(np.float64)) * ob.samples
                                   for ob in result.objects if ob.n_texels]))
     paths = sum(ob.n_texels * ob.samples for ob in result.objects)
-    seconds = sum(ob.seconds for ob in result.objects)
-    return 1.0 / max(var * seconds / max(paths, 1), 1e-300)
+    rays = sum(ob.stats.total_rays for ob in result.objects)
+    return 1.0 / max(var * rays / max(paths, 1), 1e-300)
 
 
 def part_settings(settings, mode, samples, part):
