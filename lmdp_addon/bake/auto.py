@@ -4,7 +4,7 @@ A bake of S samples per texel runs in parts, each an ordinary bake with its own 
 (seed ``AUTO_PARTS · seed + part``), and the parts are pooled with fixed weights (their sample
 counts), so the result is unbiased whatever is decided between them:
 
-1. *Pilot*: n = S / 32 samples (at least 2; below 16 samples no pilot: all unguided) (:func:`pilot_samples`) UNGUIDED with light connections. Its
+1. *Pilot*: n = S / 32 samples (even, at least 2; below 16 samples no pilot: all unguided) (:func:`pilot_samples`) UNGUIDED with light connections. Its
    relative variance per path, ``Σ n se² / (texels · mean²)`` over every baked texel and
    channel, says how hard the scene is for unguided paths. Below :data:`NOISY` (measured:
    Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy box 10-11 per path; light through a
@@ -79,9 +79,19 @@ class AutoChoice:
 
 
 def pilot_samples(samples):
-    """Samples per texel of each pilot of an AUTO bake of ``samples`` (0: too few to split)."""
+    """Samples per texel of each pilot of an AUTO bake of ``samples`` (0: too few to split): S / 32
+    rounded down to an even number, at least :data:`MIN_PILOT`, so that the pilot has two batches
+    and a standard error (``driver.batch_count``: 11 samples would be one batch), raised by 2 while
+    the rest (S - n, or S - 2n after two pilots) would be a single batch where S is not."""
+    from .driver import batch_count
     samples = int(samples)
-    return max(samples // PILOT_SHARE, MIN_PILOT) if samples >= MIN_SAMPLES else 0
+    if samples < MIN_SAMPLES:
+        return 0
+    n = max(samples // PILOT_SHARE // 2 * 2, MIN_PILOT)
+    while (n + 2 <= (samples - 4) // 2 and batch_count(samples) > 1
+           and (batch_count(samples - n) == 1 or batch_count(samples - 2 * n) == 1)):
+        n += 2
+    return n
 
 
 def relative_variance(result):
