@@ -34,7 +34,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import closing, nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -97,7 +97,7 @@ def batch_count(samples):
     return max(b for b in range(1, min(MAX_BATCHES, samples) + 1) if samples % b == 0)
 
 
-def work_units(n_texels, batches, per_batch):
+def work_units(n_texels, batches, per_batch, min_units=MIN_UNITS):
     """``(group, units)``: the work units of a bake, each ``(first batch, first texel, end
     texel)`` covering ``group`` whole batches of those texels.
 
@@ -108,7 +108,7 @@ def work_units(n_texels, batches, per_batch):
     least :data:`MIN_UNITS` units where the texels allow it (whatever the number of threads a
     bake runs on, so that its result does not depend on it).
     """
-    threads = MIN_UNITS
+    threads = int(min_units)
     per_batch_paths = max(1, n_texels * per_batch)
     n_chunks = max(1, -(-per_batch_paths // PATHS_PER_UNIT))
     group = 1
@@ -126,7 +126,7 @@ def work_units(n_texels, batches, per_batch):
 # ---- the bake of one object -------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
-                threads=None, texels=None, resolution=None, runner=None):
+                threads=None, texels=None, resolution=None, runner=None, min_units=MIN_UNITS):
     """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``resolution``:
     its lightmap side R (default ``settings.bake_resolution``; ``BakePlan.resolution_of``);
     ``texels``: its ``(TexelSet, triangles)`` at R if the caller has them (``BakePlan.texels``),
@@ -148,7 +148,7 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
             states[lo:lo + len(sub)] = guide.states_at(sub.position, sub.normal, np.full(len(sub), index))
     progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
     acc, acc2, stats = _trace_batches(tracer, ts, tris[ts.triangle], states, B, N // B, int(settings.seed),
-                                      object_number, name, progress, threads, runner)
+                                      object_number, name, progress, threads, runner, min_units)
     del states
     value, stderr = _batch_statistics(acc, acc2, B)
     del acc, acc2
@@ -255,7 +255,7 @@ def trace_unit(tracer, job, unit_id):
 
 
 def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_number, name, progress, threads,
-                   runner=None):
+                   runner=None, min_units=MIN_UNITS):
     """``(Σ_b mean_b, Σ_b mean_b², TraceStats)`` over the B batches of ``per_batch`` paths of
     every texel of ``ts`` (``triangles``: each texel's scene triangle, for its rays' offset;
     ``states``: each texel's nearest state, -1: none), traced as the
@@ -264,7 +264,7 @@ def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_num
     O(batches x texels); they are formed in unit order, so bakes are bit-identical whatever
     order the units finish in."""
     n_tex = len(ts)
-    group, units = work_units(n_tex, B, per_batch)
+    group, units = work_units(n_tex, B, per_batch, min_units)
     acc = np.zeros((n_tex, 3), np.float64)
     acc2 = np.zeros((n_tex, 3), np.float64)
     stats = TraceStats()
@@ -381,60 +381,75 @@ def bake(scene, names, settings, lmdp=None, progress=None, precompute_seconds=No
 
 
 def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm, solve):
-    """AUTO (:mod:`~lmdp_addon.bake.auto`): the pilots, the choice, the rest, pooled."""
+    """AUTO (:mod:`~lmdp_addon.bake.auto`): the pilots on a share of the texels, the choice, then
+    the bake itself in the chosen mode (its result is that mode's bake, relabelled AUTO)."""
     progress = progress if progress is not None else Progress()
     t0 = time.perf_counter()
     S = int(settings.bake_samples)
-    n = auto.pilot_samples(S)
-    parts = []
-
-    def part(mode, samples, k, lm=None, made=None):
-        s = auto.part_settings(settings, mode, samples, k)
-        made = made or (make_tracer(scene, s, lm), s)
-        parts.append(_bake(scene, names, s, lm, progress, None, threads, plan, farm, made=made[0],
-                           tracer_settings=made[1]))
-        return parts[-1], made
-
     seconds = dict(precompute_seconds or {})
-    if n == 0:     # too few samples for pilots: unguided
-        part("UNGUIDED", S, 0)
-        choice = auto.AutoChoice(relative_variance=float("nan"), samples=(("UNGUIDED", S),))
-    else:
-        pilot, unguided = part("UNGUIDED", n, 0)
-        rv = auto.relative_variance(pilot)
-        choice = auto.AutoChoice(relative_variance=rv)
-        choice.too_small = rv >= auto.NOISY and lmdp is None and not auto.worth_solving(pilot, settings, S - n)
-        if rv < auto.NOISY or (lmdp is None and (solve is None or choice.too_small)):
-            part("UNGUIDED", S - n, 1, made=unguided)
-            choice.samples = (("UNGUIDED", S),)
-        else:
+    unguided_settings = replace(settings, bake_mode="UNGUIDED")
+    unguided = make_tracer(scene, unguided_settings, None)
+    choice = auto.AutoChoice(relative_variance=float("nan"))
+    mode, made, main_settings, used = "UNGUIDED", unguided, unguided_settings, None
+    if S >= auto.MIN_SAMPLES:
+        targets = [_auto_texels(scene, plan, settings, name) for name in names]
+        first = _auto_pilot(scene, targets, unguided_settings, unguided, 1, progress)
+        choice.relative_variance = auto.relative_variance(first)
+        per_path = sum(ob.stats.total_rays for ob in first) / max(sum(ob.n_texels * ob.samples for ob in first), 1)
+        texels = sum(t[4] for t in targets)
+        noisy = choice.relative_variance >= auto.NOISY
+        choice.too_small = noisy and lmdp is None and not auto.worth_solving(per_path, texels, settings, S)
+        if noisy and (lmdp is not None or (solve is not None and not choice.too_small)):
             if lmdp is None:
-                progress.begin("solve for AUTO")
-                lmdp = solve()
+                progress.begin("AUTO: solve")
+                lmdp = choice.lmdp = solve()
                 progress.end("solved")
                 seconds.update(getattr(lmdp, "seconds", {}) or {})
-                choice.lmdp = lmdp
-            guided_settings = auto.part_settings(settings, "GUIDED", S, 1)   # the guide sized for the bake
-            guided = (make_tracer(scene, guided_settings, lmdp), guided_settings)
-            second, _ = part("GUIDED", n, 1, lmdp, made=guided)
+            guided_settings = replace(settings, bake_mode="GUIDED")
+            guided = make_tracer(scene, guided_settings, lmdp)
+            second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress)
             choice.solved = True
-            choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(pilot)
-            choice.mode = "GUIDED" if choice.guided_gain > 1.0 else "UNGUIDED"
-            part(choice.mode, S - 2 * n, 2, lmdp if choice.mode == "GUIDED" else None,
-                 made=guided if choice.mode == "GUIDED" else unguided)
-            choice.samples = (("UNGUIDED", n + (S - 2 * n if choice.mode == "UNGUIDED" else 0)),
-                              ("GUIDED", n + (S - 2 * n if choice.mode == "GUIDED" else 0)))
-    choice.parts = tuple((p.mode, p.objects[0].samples if p.objects else 0, p.seconds.get("bake", 0.0))
-                         for p in parts)
-    seconds["bake"] = time.perf_counter() - t0
-    seconds["bake_setup"] = sum(p.seconds.get("bake_setup", 0.0) for p in parts)
-    info = next((p.guide_info for p in parts if p.guide_info), {})
-    warnings = list(plan.warnings) + list(plan.texel_warnings)
-    result = auto.pooled(parts, settings, seconds, warnings, info, choice,
-                         lambda ob: object_image(ob.texels, ob.value, ob.resolution, settings.bake_margin))
-    if plan.atlas and result.objects:
-        result.atlases = [compose_atlas(ATLAS_NAME, result.objects, int(settings.bake_margin))]
+            choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
+            if choice.guided_gain > 1.0:
+                mode, made, main_settings, used = "GUIDED", guided, guided_settings, lmdp
+    choice.mode = mode
+    choice.samples = ((mode, S),)
+    seconds["auto"] = time.perf_counter() - t0        # pilots, solve, guide: before the bake itself
+    result = _bake(scene, names, main_settings, used, progress, None, threads, plan, farm, made=made)
+    result.seconds = {**seconds, **result.seconds, "bake": time.perf_counter() - t0}
+    result.mode, result.settings, result.auto = "AUTO", settings.as_dict(), choice
     return result
+
+
+def _auto_texels(scene, plan, settings, name):
+    """``(object number, name, (TexelSet, triangles), resolution, texels of the object)`` of a
+    pilot of AUTO: every k-th texel of the object, k such that all objects together give about
+    :data:`auto.PILOT_TEXELS` texels."""
+    index = object_index(scene, name)
+    same = plan.resolution == int(settings.bake_resolution)
+    R = plan.resolution_of(index) if same else int(settings.bake_resolution)
+    texels = plan.texels.get(index) if same else None
+    ts, tris = texels if texels is not None else object_texels(scene, index, R)
+    total = sum(len(t[0]) for t in plan.texels.values()) if same and plan.texels else len(ts)
+    stride = max(1, -(-total // auto.PILOT_TEXELS))
+    number = plan.names.index(name) if name in plan.names else 0
+    return number, name, (ts.subset(slice(0, None, stride)), tris), R, len(ts)
+
+
+def _auto_pilot(scene, targets, settings, made, part, progress):
+    """The ObjectBakes of an AUTO pilot: ``auto.pilot_samples`` samples at the ``targets``
+    texels (:func:`_auto_texels`) with the tracer ``made``, in one work unit per object, on random
+    streams of their own (seed ``AUTO_PARTS · seed + part``): measurements only, never pooled."""
+    tracer, guide, _ = made
+    n = auto.pilot_samples(sum(len(t[2][0]) for t in targets), settings.bake_samples)
+    s = replace(settings, bake_samples=n, seed=auto.AUTO_PARTS * int(settings.seed) + part)
+    out = []
+    for number, name, texels, R, _ in targets:
+        progress.begin(f"AUTO pilot ({settings.bake_mode}) {name}")
+        out.append(bake_object(tracer, scene, name, s, object_number=number, guide=guide, progress=progress,
+                               threads=1, texels=texels, resolution=R, min_units=1))
+        progress.end(f"{out[-1].n_texels} texels")
+    return out
 
 
 def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None,
