@@ -393,7 +393,7 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
     mode, made, main_settings, used = "UNGUIDED", unguided, unguided_settings, None
     if S >= auto.MIN_SAMPLES:
         targets = [_auto_texels(scene, plan, settings, name) for name in names]
-        first = _auto_pilot(scene, targets, unguided_settings, unguided, 1, progress)
+        first = _auto_pilot(scene, targets, unguided_settings, unguided, 1, progress, threads)
         choice.relative_variance = auto.relative_variance(first)
         per_path = sum(ob.stats.total_rays for ob in first) / max(sum(ob.n_texels * ob.samples for ob in first), 1)
         texels = sum(t[4] for t in targets)
@@ -407,7 +407,7 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
                 seconds.update(getattr(lmdp, "seconds", {}) or {})
             guided_settings = replace(settings, bake_mode="GUIDED")
             guided = make_tracer(scene, guided_settings, lmdp)
-            second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress)
+            second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress, threads)
             choice.solved = True
             choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
             if choice.guided_gain > 1.0:
@@ -436,10 +436,11 @@ def _auto_texels(scene, plan, settings, name):
     return number, name, (ts.subset(slice(0, None, stride)), tris), R, len(ts)
 
 
-def _auto_pilot(scene, targets, settings, made, part, progress):
+def _auto_pilot(scene, targets, settings, made, part, progress, threads=None):
     """The ObjectBakes of an AUTO pilot: ``auto.pilot_samples`` samples at the ``targets``
-    texels (:func:`_auto_texels`) with the tracer ``made``, in one work unit per object, on random
-    streams of their own (seed ``AUTO_PARTS · seed + part``): measurements only, never pooled."""
+    texels (:func:`_auto_texels`) with the tracer ``made``, in two work units per object (on
+    ``threads``), on random streams of their own (seed ``AUTO_PARTS · seed + part``): measurements
+    only, never part of the lightmaps."""
     tracer, guide, _ = made
     n = auto.pilot_samples(sum(len(t[2][0]) for t in targets), settings.bake_samples)
     s = replace(settings, bake_samples=n, seed=auto.AUTO_PARTS * int(settings.seed) + part)
@@ -447,7 +448,7 @@ def _auto_pilot(scene, targets, settings, made, part, progress):
     for number, name, texels, R, _ in targets:
         progress.begin(f"AUTO pilot ({settings.bake_mode}) {name}")
         out.append(bake_object(tracer, scene, name, s, object_number=number, guide=guide, progress=progress,
-                               threads=1, texels=texels, resolution=R, min_units=1))
+                               threads=threads, texels=texels, resolution=R, min_units=2))
         progress.end(f"{out[-1].n_texels} texels")
     return out
 
