@@ -125,7 +125,7 @@ class LMDPBake:
         from lmdp_addon.bake import driver as baking
         from lmdp_addon.model import pipeline
         settings = self.settings(case, samples, seed)
-        solve = (lambda: pipeline.run_all(case.scene, settings)) if self.family == "AUTO" else None
+        solve = (lambda: pipeline.run_all(case.scene, settings, check=False)) if self.family == "AUTO" else None
         with Stopwatch() as sw:
             result = baking.bake(case.scene, [case.receiver], settings, prepared.state, solve=solve)
         ob = result.objects[0]

@@ -33,7 +33,7 @@ PILOT_TEXELS = 4096
 PILOT_SAMPLES = 4
 #: ... and its paths: where the bake has fewer texels, more samples each (at most a quarter of
 #: the bake's), so that both pilots measure enough paths to compare.
-PILOT_PATHS = 16384
+PILOT_PATHS = 8192
 
 
 def pilot_samples(pilot_texels, samples):
