@@ -2,9 +2,9 @@
 
 A bake of S samples per texel (S >= :data:`MIN_SAMPLES`; fewer: UNGUIDED) first measures, on
 about :data:`PILOT_TEXELS` of its texels (every k-th), about :data:`PILOT_PATHS` paths
-(:func:`pilot_samples`), on random streams of their own (seed ``AUTO_PARTS · seed + k``). The pilots only decide; the bake
-itself is then an ordinary UNGUIDED or GUIDED bake of all S samples with the user's seed (the
-same bytes as that mode's bake), so the decision cannot bias it:
+(:func:`pilot_samples`), on random streams of their own (seed ``PILOT_STREAMS · seed + k``).
+The pilots only decide; the bake itself is then an ordinary UNGUIDED or GUIDED bake of all S
+samples with the user's seed (the same bytes as that mode's bake), so the decision cannot bias it:
 
 1. *Unguided pilot*, with light connections: its relative variance per path,
    ``Σ n se² / (texels · mean²)`` over the pilot's texels and channels, says how hard the
@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Random streams of the pilots: pilot k uses seed ``AUTO_PARTS * seed + k`` (k = 1, 2).
-AUTO_PARTS = 4
+#: Random streams of the pilots: pilot k uses seed ``PILOT_STREAMS * seed + k`` (k = 1, 2).
+PILOT_STREAMS = 4
 #: Texels of a pilot (all baked objects together; every k-th texel of each) ...
 PILOT_TEXELS = 4096
 #: ... its fewest samples per texel (batches: each texel's standard error) ...
@@ -34,15 +34,6 @@ PILOT_SAMPLES = 4
 #: ... and its paths: where the bake has fewer texels, more samples each (at most a quarter of
 #: the bake's), so that both pilots measure enough paths to compare.
 PILOT_PATHS = 8192
-
-
-def pilot_samples(pilot_texels, samples):
-    """Samples per texel of the pilots at ``pilot_texels`` texels of a bake of ``samples``:
-    :data:`PILOT_PATHS` paths, at least :data:`PILOT_SAMPLES`, at most a quarter of the bake's,
-    a multiple of 4 (four batches)."""
-    want = -(-PILOT_PATHS // max(int(pilot_texels), 1))
-    n = max(PILOT_SAMPLES, min(want, int(samples) // 4))
-    return -(-n // 4) * 4
 #: Fewest samples per texel of a bake that runs pilots (below, UNGUIDED).
 MIN_SAMPLES = 16
 #: Relative variance per path of the unguided pilot above which the LMDP is solved.
@@ -55,6 +46,15 @@ GUIDED_RAY_COST = 1.3
 #: rays per stratum + light samples)); a smaller bake stays unguided. GUIDED gained 2-3x where
 #: the pilot was noisy, so a build of half the bake's rays still pays.
 SOLVE_SHARE = 0.5
+
+
+def pilot_samples(pilot_texels, samples):
+    """Samples per texel of the pilots at ``pilot_texels`` texels of a bake of ``samples``:
+    :data:`PILOT_PATHS` paths, at least :data:`PILOT_SAMPLES`, at most a quarter of the bake's,
+    a multiple of 4 (four batches)."""
+    want = -(-PILOT_PATHS // max(int(pilot_texels), 1))
+    n = max(PILOT_SAMPLES, min(want, int(samples) // 4))
+    return -(-n // 4) * 4
 
 
 @dataclass

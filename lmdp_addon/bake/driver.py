@@ -439,11 +439,11 @@ def _auto_texels(scene, plan, settings, name):
 def _auto_pilot(scene, targets, settings, made, part, progress, threads=None):
     """The ObjectBakes of an AUTO pilot: ``auto.pilot_samples`` samples at the ``targets``
     texels (:func:`_auto_texels`) with the tracer ``made``, in two work units per object (on
-    ``threads``), on random streams of their own (seed ``AUTO_PARTS · seed + part``): measurements
+    ``threads``), on random streams of their own (seed ``PILOT_STREAMS · seed + part``): measurements
     only, never part of the lightmaps."""
     tracer, guide, _ = made
     n = auto.pilot_samples(sum(len(t[2][0]) for t in targets), settings.bake_samples)
-    s = replace(settings, bake_samples=n, seed=auto.AUTO_PARTS * int(settings.seed) + part)
+    s = replace(settings, bake_samples=n, seed=auto.PILOT_STREAMS * int(settings.seed) + part)
     out = []
     for number, name, texels, R, _ in targets:
         progress.begin(f"AUTO pilot ({settings.bake_mode}) {name}")
@@ -453,23 +453,21 @@ def _auto_pilot(scene, targets, settings, made, part, progress, threads=None):
     return out
 
 
-def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None,
-          tracer_settings=None):
+def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None):
     """:func:`bake` with the scene's derived geometry held and its plan (``made``: the
-    :func:`make_tracer` triple to trace with, made here of ``tracer_settings`` when None, by
-    default ``settings``; a farm's workers make theirs of the same)."""
+    :func:`make_tracer` triple of ``settings`` and ``lmdp`` to trace with, made here when None;
+    a farm's workers make theirs of the same)."""
     progress = progress if progress is not None else Progress()
     check_texels(scene, plan, progress)                # when the plan still needs them
     names = [n for n in names if n in plan.names]      # the texel checks may leave objects out
     t0 = time.perf_counter()
-    tracer_settings = tracer_settings if tracer_settings is not None else settings
-    tracer, guide, info = made if made is not None else make_tracer(scene, tracer_settings, lmdp)
+    tracer, guide, info = made if made is not None else make_tracer(scene, settings, lmdp)
     setup = time.perf_counter() - t0
     same = plan.resolution == int(settings.bake_resolution)
     texels = plan.texels if same else {}
     objects = []
     farm = farm if farm is not None else farm_session.current()
-    with farm.bake_units(scene, tracer_settings, lmdp) if farm is not None else nullcontext() as runner:
+    with farm.bake_units(scene, settings, lmdp) if farm is not None else nullcontext() as runner:
         for number, name in enumerate(names):
             progress.begin(f"bake {name}")
             index = object_index(scene, name)

@@ -38,6 +38,8 @@ MAX_COPIES = 2
 SURVIVAL_FLOOR = 0.1
 #: States whose V is averaged into each state's (the rays' noise of one row of P).
 SPLIT_NEIGHBOURS = 8
+#: The share of the answer a path should carry (the window's centre, in units of V(s_0)).
+WINDOW = 1.0
 
 
 @dataclass
@@ -71,10 +73,6 @@ class SplitField:
         """The states of ray hits (-1: none), as the guide finds them (``guide.locate_hits``)."""
         return locate_hits(self.locator, self.same_scene, self.object_map, tri, bu, bv, positions, side_normals,
                            front, objects)
-
-
-#: The share of the answer a path should carry (the window's centre, in units of V(s_0)).
-WINDOW = 1.0
 
 
 def window(ratio, known, roulette, rng):

@@ -872,11 +872,7 @@ def _select_rows(index, *arrays):
     first = next((a for a in arrays if a is not None), None)
     if first is not None and len(index) == len(first):
         return arrays
-    taken = {}
-    for a in arrays:
-        if a is not None and id(a) not in taken:
-            taken[id(a)] = np.take(a, index, axis=0)
-    return tuple(None if a is None else taken[id(a)] for a in arrays)
+    return _taken_rows(index, *arrays)
 
 
 def _taken_rows(index, *arrays):

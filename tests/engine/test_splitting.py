@@ -74,16 +74,22 @@ class Recorder:
 
 # ---- the scenes ----------------------------------------------------------------------------------
 
+def solved_points(kind, receiver, seed):
+    """``(scene, lmdp, fine guide, SplitField, points, normals, triangles, states)``: the built-in
+    scene ``kind`` solved with 512 points, six points of object ``receiver`` and their states."""
+    scene = scenes.build_scene_arrays(kind)
+    lmdp = pipeline.run_all(scene, Settings(point_count=512))
+    guide = build_guide(scene, lmdp, fine=True)
+    points, normals, tri = receiver_points(scene, receiver, 6, seed=seed)
+    states = guide.states_at(points, normals, np.full(len(points), scene.object_names.index(receiver)))
+    return scene, lmdp, guide, SplitField.from_lmdp(scene, lmdp), points, normals, tri, states
+
+
 @pytest.fixture(scope="module")
 def narrow():
     """The narrow opening solved (512 points), its fine guide, V and six RoomAFloor points with
     their states (each has one, and V is known there)."""
-    scene = scenes.build_scene_arrays("NARROW_OPENING")
-    lmdp = pipeline.run_all(scene, Settings(point_count=512))
-    guide = build_guide(scene, lmdp, fine=True)
-    field = SplitField.from_lmdp(scene, lmdp)
-    points, normals, tri = receiver_points(scene, "RoomAFloor", 6, seed=1)
-    states = guide.states_at(points, normals, np.full(len(points), scene.object_names.index("RoomAFloor")))
+    scene, lmdp, guide, field, points, normals, tri, states = solved_points("NARROW_OPENING", "RoomAFloor", 1)
     assert np.all(states >= 0) and np.all(field.at_states(states) > 0)
     caster = lmdp.dynamics.caster
     plain = path_values(IndirectTracer(scene, max_bounces=8, caster=caster), points, normals, 80_000, seed=100,
@@ -327,12 +333,7 @@ def test_glossy_box_guided_splitting_keeps_the_mean():
     points, 60 000 plain UNGUIDED paths each against 30 000 GUIDED + splitting, in which the
     glossy vertices' BSDF rows follow the copies (``GlossyRows.select`` with repeated rows):
     the same means within 5 s.e."""
-    scene = scenes.build_scene_arrays("GLOSSY_BOX")
-    lmdp = pipeline.run_all(scene, Settings(point_count=512))
-    guide = build_guide(scene, lmdp, fine=True)
-    field = SplitField.from_lmdp(scene, lmdp)
-    points, normals, tri = receiver_points(scene, "Floor", 6, seed=2)
-    states = guide.states_at(points, normals, np.full(len(points), scene.object_names.index("Floor")))
+    scene, lmdp, guide, field, points, normals, tri, states = solved_points("GLOSSY_BOX", "Floor", 2)
     caster = lmdp.dynamics.caster
     plain = path_values(IndirectTracer(scene, max_bounces=8, caster=caster, glossy_bounces=4), points, normals,
                         60_000, seed=140, triangles=tri)[0]
