@@ -12,9 +12,10 @@ samples with the user's seed (the same bytes as that mode's bake), so the decisi
    box 10-11 per path; light through a hatch 77-87). Below :data:`NOISY`: UNGUIDED, no solve.
 2. Noisy, and the bake large enough that the LMDP's build costs at most :data:`SOLVE_SHARE` of
    its rays (:func:`worth_solving`), or a solution given: the LMDP is sampled, built and solved
-   (or the given solution reused) and a *guided pilot* runs GUIDED (the fine guide, light
+   (or the given solution reused) and (below :data:`SURE`) a *guided pilot* runs GUIDED (the fine guide, light
    connections, the solution's Russian roulette and splitting: :mod:`~lmdp_addon.bake.splitting`).
-3. GUIDED bakes the lightmaps if it was more efficient on the pilots, 1 / (variance per path x
+3. Above :data:`SURE`, GUIDED bakes the lightmaps without a guided pilot. Between, GUIDED
+   bakes them if it was more efficient on the pilots, 1 / (variance per path x
    cost per path), the cost counted in rays (a GUIDED ray :data:`GUIDED_RAY_COST` times an
    unguided one): counts, not clocks, so a bake is the same for a seed on any machine and thread
    count. Otherwise UNGUIDED.
@@ -27,17 +28,22 @@ import numpy as np
 
 #: Random streams of the pilots: pilot k uses seed ``PILOT_STREAMS * seed + k`` (k = 1, 2).
 PILOT_STREAMS = 4
-#: Texels of a pilot (all baked objects together; every k-th texel of each) ...
-PILOT_TEXELS = 4096
+#: Paths of a pilot ...
+PILOT_PATHS = 8192
 #: ... its fewest samples per texel (batches: each texel's standard error) ...
 PILOT_SAMPLES = 4
-#: ... and its paths: where the bake has fewer texels, more samples each (at most a quarter of
-#: the bake's), so that both pilots measure enough paths to compare.
-PILOT_PATHS = 8192
+#: ... and its texels (all baked objects together; every k-th texel of each): where the bake has
+#: fewer, more samples each (at most a quarter of the bake's), so that both pilots measure
+#: enough paths to compare.
+PILOT_TEXELS = PILOT_PATHS // PILOT_SAMPLES
 #: Fewest samples per texel of a bake that runs pilots (below, UNGUIDED).
 MIN_SAMPLES = 16
-#: Relative variance per path of the unguided pilot above which the LMDP is solved.
+#: Relative variance per path of the unguided pilot above which the LMDP is solved ...
 NOISY = 25.0
+#: ... and above which GUIDED bakes without a guided pilot (measured: where unguided paths
+#: were this noisy, light through a hatch at 76-126, GUIDED won every pilot, 1.3-3.5x; the
+#: guided pilot's own cost was a third of AUTO's overhead there).
+SURE = 50.0
 #: Time of a GUIDED ray over an UNGUIDED one, both with light connections (the guide's lookups
 #: and mixture densities; measured on the narrow opening at 64 and 256 samples: 1.46x the time per
 #: path for 1.13x the rays).
@@ -64,6 +70,7 @@ class AutoChoice:
     relative_variance: float               #: of the unguided pilot, per path
     solved: bool = False                   #: the LMDP was solved (or reused) and piloted
     too_small: bool = False                #: noisy, but the bake too small to pay for a solve
+    sure: bool = False                     #: so noisy that GUIDED baked without a guided pilot
     guided_gain: float = float("nan")      #: GUIDED's efficiency over UNGUIDED's on the pilots
     mode: str = "UNGUIDED"                 #: the mode that baked the lightmaps
     samples: tuple = ()                    #: (mode, samples) of the bake
@@ -78,12 +85,16 @@ class AutoChoice:
         if not self.solved:
             return (f"AUTO: unguided paths were quiet (relative variance {self.relative_variance:.3g} per path, "
                     f"below {NOISY:g}): no solve, UNGUIDED with light connections")
+        if self.sure:
+            return (f"AUTO: unguided paths were very noisy (relative variance {self.relative_variance:.3g} per path, "
+                    f"above {SURE:g}): solved the LMDP: GUIDED")
         return (f"AUTO: unguided paths were noisy (relative variance {self.relative_variance:.3g} per path): "
                 f"solved the LMDP; GUIDED was {self.guided_gain:.2f}x as efficient on the pilots: {self.mode}")
 
     def as_dict(self):
         return dict(relative_variance=self.relative_variance, solved=self.solved, guided_gain=self.guided_gain,
-                    mode=self.mode, samples=[list(s) for s in self.samples], too_small=self.too_small)
+                    mode=self.mode, samples=[list(s) for s in self.samples], too_small=self.too_small,
+                    sure=self.sure)
 
 
 def relative_variance(objects):

@@ -407,10 +407,12 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
                 seconds.update(getattr(lmdp, "seconds", {}) or {})
             guided_settings = replace(settings, bake_mode="GUIDED")
             guided = make_tracer(scene, guided_settings, lmdp)
-            second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress, threads)
             choice.solved = True
-            choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
-            if choice.guided_gain > 1.0:
+            choice.sure = choice.relative_variance >= auto.SURE
+            if not choice.sure:
+                second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress, threads)
+                choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
+            if choice.sure or choice.guided_gain > 1.0:
                 mode, made, main_settings, used = "GUIDED", guided, guided_settings, lmdp
     choice.mode = mode
     choice.samples = ((mode, S),)

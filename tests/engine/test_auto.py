@@ -29,6 +29,7 @@ def any_size(monkeypatch):
     """These bakes are far smaller than a solve pays for (``auto.worth_solving``): let them solve
     anyway (:func:`test_a_small_bake_stays_unguided` keeps the rule)."""
     monkeypatch.setattr(auto, "SOLVE_SHARE", float("inf"))
+    monkeypatch.setattr(auto, "SURE", float("inf"))   # the guided pilot always runs (but below)
 
 
 def settings(**kw):
@@ -133,6 +134,21 @@ def test_noisy_narrow_opening_solves_once_and_keeps_the_mean(narrow):
     s = np.sqrt(sa ** 2 + sb ** 2)
     assert np.all(s < 0.1 * mb), (mb, s)
     assert np.all(np.abs(ma - mb) <= K * s), (ma, mb, s)
+
+
+def test_a_very_noisy_pilot_bakes_guided_without_a_guided_pilot(narrow, narrow_solved, monkeypatch):
+    """Above ``auto.SURE`` (the narrow opening's RoomAFloor: measured 76-126) no guided pilot runs:
+    the bake is GUIDED's own with the given solution, byte for byte, and the report says so."""
+    monkeypatch.setattr(auto, "SURE", auto.NOISY)
+    pilots = []
+    real = baking._auto_pilot
+    monkeypatch.setattr(baking, "_auto_pilot", lambda *a, **k: pilots.append(a[2].bake_mode) or real(*a, **k))
+    result = baking.bake(narrow, ["RoomAFloor"], settings(), narrow_solved, threads=2, solve=never)
+    choice = result.auto
+    assert pilots == ["UNGUIDED"] and choice.sure and choice.solved and choice.mode == "GUIDED"
+    assert np.isnan(choice.guided_gain) and "very noisy" in choice.sentence()
+    same = baking.bake(narrow, ["RoomAFloor"], settings(bake_mode="GUIDED"), narrow_solved, threads=2)
+    np.testing.assert_array_equal(result.object("RoomAFloor").value, same.object("RoomAFloor").value)
 
 
 # ---- (d), (e) without a solution; with one given -------------------------------------------------
