@@ -12,11 +12,12 @@ samples with the user's seed (the same bytes as that mode's bake), so the decisi
    box 10-11 per path; light through a hatch 77-87). Below :data:`NOISY`: UNGUIDED, no solve.
 2. Noisy, and the bake large enough that the LMDP's build costs at most :data:`SOLVE_SHARE` of
    its rays (:func:`worth_solving`), or a solution given: the LMDP is sampled, built and solved
-   (or the given solution reused) and (below :data:`SURE`) a *guided pilot* runs GUIDED (the fine guide, light
-   connections, the solution's Russian roulette and splitting: :mod:`~lmdp_addon.bake.splitting`).
-3. Above :data:`SURE`, GUIDED bakes the lightmaps without a guided pilot. Between, GUIDED
-   bakes them if it was more efficient on the pilots, 1 / (variance per path x
-   cost per path), the cost counted in rays (a GUIDED ray :data:`GUIDED_RAY_COST` times an
+   (or the given solution reused) and, below :data:`SURE`, a *guided pilot* runs GUIDED (the fine
+   guide, light connections, the solution's Russian roulette and splitting:
+   :mod:`~lmdp_addon.bake.splitting`).
+3. At or above :data:`SURE`, GUIDED bakes the lightmaps without a guided pilot. Below, GUIDED
+   bakes them if it was more efficient on the pilots, 1 / (variance per path x cost per path),
+   the cost counted in rays (a GUIDED ray :data:`GUIDED_RAY_COST` times an
    unguided one): counts, not clocks, so a bake is the same for a seed on any machine and thread
    count. Otherwise UNGUIDED.
 
@@ -40,9 +41,8 @@ PILOT_TEXELS = PILOT_PATHS // PILOT_SAMPLES
 MIN_SAMPLES = 16
 #: Relative variance per path of the unguided pilot above which the LMDP is solved ...
 NOISY = 25.0
-#: ... and above which GUIDED bakes without a guided pilot (measured: where unguided paths
-#: were this noisy, light through a hatch at 76-126, GUIDED won every pilot, 1.3-3.5x; the
-#: guided pilot's own cost was a third of AUTO's overhead there).
+#: ... and at or above which GUIDED bakes without a guided pilot (measured: where unguided paths
+#: were this noisy, light through a hatch at 76-126, GUIDED won every guided pilot, 1.25-3.5x).
 SURE = 50.0
 #: Time of a GUIDED ray over an UNGUIDED one, both with light connections (the guide's lookups
 #: and mixture densities; measured on the narrow opening at 64 and 256 samples: 1.46x the time per

@@ -1,8 +1,9 @@
 """AUTO, the default bake mode (lmdp_addon.bake.auto, ``driver._bake_auto``): pilots of
 PILOT_SAMPLES samples on about PILOT_TEXELS texels (none below 16 samples), on their own seeds,
 only to decide; quiet (relative variance per path below NOISY) the bake is UNGUIDED with no
-solve; noisy the LMDP solved (the ``solve`` callback, or the given ``lmdp``), a GUIDED pilot, and
-the bake in the more efficient mode: the same bytes as that mode's own bake.
+solve; noisy the LMDP solved (the ``solve`` callback, or the given ``lmdp``), a GUIDED pilot (none
+at or above SURE: GUIDED), and the bake in the more efficient mode: the same bytes as that mode's
+own bake.
 
 The tests: the quiet Cornell floor never solves and is UNGUIDED's bake; the narrow opening's
 RoomAFloor (lit only through a hatch) solves once, is GUIDED's bake and keeps plain UNGUIDED's
@@ -29,7 +30,7 @@ def any_size(monkeypatch):
     """These bakes are far smaller than a solve pays for (``auto.worth_solving``): let them solve
     anyway (:func:`test_a_small_bake_stays_unguided` keeps the rule)."""
     monkeypatch.setattr(auto, "SOLVE_SHARE", float("inf"))
-    monkeypatch.setattr(auto, "SURE", float("inf"))   # the guided pilot always runs (but below)
+    monkeypatch.setattr(auto, "SURE", float("inf"))   # the guided pilot runs (one test lowers SURE)
 
 
 def settings(**kw):
