@@ -9,7 +9,7 @@ samples with the user's seed (the same bytes as that mode's bake), so the decisi
 1. *Unguided pilot*, with light connections: its relative variance per path,
    ``Σ n se² / (texels · mean²)`` over the pilot's texels and channels, says how hard the
    scene is for unguided paths (measured: Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy
-   box 10-11 per path; light through a hatch 77-87). Below :data:`NOISY`: UNGUIDED, no solve.
+   box 10-11 per path; light through a hatch 76-126). Below :data:`NOISY`: UNGUIDED, no solve.
 2. Noisy, and the bake large enough that the LMDP's build costs at most :data:`SOLVE_SHARE` of
    its rays (:func:`worth_solving`), or a solution given: the LMDP is sampled, built and solved
    (or the given solution reused) and, below :data:`SURE`, a *guided pilot* runs GUIDED (the fine
