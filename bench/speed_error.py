@@ -14,8 +14,9 @@ For each case (scene, receiver object, resolution, path length):
 3. Scored texels: covered in Cycles' reference and in the engine's rasterisation
    (``checks.object_texels``; the two masks are compared and the difference reported) and facing
    up (normal z > 0.5: the floor's top, not the sides or underside of a floor slab).
-4. Every method runs its ladder of sample counts ``repeats`` times (seeds 100, 101, ...; the
-   repeat loop is outermost so that slow drifts of the machine spread over all methods). Times are
+4. Every method runs its ladder of sample counts ``repeats`` times (``case_repeats`` for a case
+   named there; seeds 100, 101, ...; the repeat loop is outermost so that slow drifts of the
+   machine spread over all methods). Times are
    medians over the repeats; the error is the root mean square of the repeats' relative RMSEs,
    corrected for the reference noise; the bias is the mean of the repeats' biases.
 """
@@ -68,6 +69,8 @@ class Profile:
     #: Sample counts of Cycles with path guiding on (Open PGL), a column beside Cycles, per case
     #: (case key -> ladder; a case not named does not run it).
     cycles_guided_ladder: dict = field(default_factory=dict)
+    #: Repeats of a case where it needs more than ``repeats`` (case key -> repeats).
+    case_repeats: dict = field(default_factory=dict)
 
 
 def method_plan(profile, case_key):
@@ -317,10 +320,11 @@ def run(profile, blender, cache_dir=None):
     for key in profile.cases:
         case = prepare_case(key, profile, blender, cache_dir)
         methods = method_plan(profile, key)
-        records, failures = run_case(case, methods, profile.repeats)
+        repeats = int(profile.case_repeats.get(key, profile.repeats))
+        records, failures = run_case(case, methods, repeats)
         result = {
             "title": case.title, "kind": case.kind, "receiver": case.receiver,
-            "resolution": case.resolution, "bounces": case.bounces, "repeats": profile.repeats,
+            "resolution": case.resolution, "bounces": case.bounces, "repeats": repeats,
             "triangles": case.info["triangles"], "reference": case.info["reference"],
             "coverage": case.info["coverage"], "blender_scene_seconds": case.info["blender_scene_seconds"],
             "methods": [{"name": m.name, "family": m.family, "ladder": list(m.ladder), "settings": m.describe()}
