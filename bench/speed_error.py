@@ -16,9 +16,9 @@ For each case (scene, receiver object, resolution, path length):
    up (normal z > 0.5: the floor's top, not the sides or underside of a floor slab).
 4. Every method runs its ladder of sample counts ``repeats`` times (``case_repeats`` for a case
    named there; seeds 100, 101, ...; the repeat loop is outermost so that slow drifts of the
-   machine spread over all methods). Times are
-   medians over the repeats; the error is the root mean square of the repeats' relative RMSEs,
-   corrected for the reference noise; the bias is the mean of the repeats' biases.
+   machine spread over all methods). Times are medians over the repeats; the error is the root
+   mean square of the repeats' relative RMSEs, corrected for the reference noise; the bias is the
+   mean of the repeats' biases.
 """
 import hashlib
 import time
