@@ -9,12 +9,18 @@ samples with the user's seed (the same bytes as that mode's bake), so the decisi
 1. *Unguided pilot*, with light connections: its relative variance per path,
    ``Σ n se² / (texels · mean²)`` over the pilot's texels and channels, says how hard the
    scene is for unguided paths (measured: Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy
-   box 10-11 per path; light through a hatch 76-126). Below :data:`NOISY`: UNGUIDED, no solve.
-2. Noisy, and the bake large enough that the LMDP's build costs at most :data:`SOLVE_SHARE` of
-   its rays (:func:`worth_solving`), or a solution given: the LMDP is sampled, built and solved
-   (or the given solution reused) and, below :data:`SURE`, a *guided pilot* runs GUIDED (the fine
-   guide, light connections, the solution's Russian roulette and splitting:
-   :mod:`~lmdp_addon.bake.splitting`).
+   box 10-11 per path; light through a hatch 76-126). Below :data:`MODERATE`: UNGUIDED, no solve.
+2. Noisy (at or above :data:`NOISY`), and the bake large enough that the LMDP's build costs at
+   most :data:`SOLVE_SHARE` of its rays (:func:`worth_solving`), or a solution given: the LMDP is
+   sampled, built and solved (or the given solution reused) and, below :data:`SURE`, a *guided
+   pilot* runs GUIDED (the fine guide, light connections, the solution's Russian roulette and
+   splitting: :mod:`~lmdp_addon.bake.splitting`).
+   Moderately noisy (from :data:`MODERATE` to :data:`NOISY`), the same with the smaller share
+   :data:`MODERATE_SOLVE_SHARE` (the gain to expect is smaller), and the guided pilot runs
+   GUIDED *without* splitting: where unguided paths are only moderately noisy, the copies cost
+   more than they save (measured on the sun + HDRI scene: variance per sample 0.68x UNGUIDED's
+   without splitting, 0.88x with it, at 1.25x and 1.44x the time); it guides the bake if it
+   gained at least :data:`MODERATE_GAIN` on the pilots.
 3. At or above :data:`SURE`, GUIDED bakes the lightmaps without a guided pilot. Below, GUIDED
    bakes them if it was more efficient on the pilots, 1 / (variance per path x cost per path),
    the cost counted in rays (a GUIDED ray :data:`GUIDED_RAY_COST` times an
@@ -39,7 +45,12 @@ PILOT_SAMPLES = 4
 PILOT_TEXELS = PILOT_PATHS // PILOT_SAMPLES
 #: Fewest samples per texel of a bake that runs pilots (below, UNGUIDED).
 MIN_SAMPLES = 16
-#: Relative variance per path of the unguided pilot above which the LMDP is solved ...
+#: Relative variance per path of the unguided pilot from which a bake large enough for
+#: :data:`MODERATE_SOLVE_SHARE` solves the LMDP and pilots GUIDED without splitting (the quiet
+#: Cornell and heavy boxes measured 2.4-3.9, where GUIDED gained nothing over UNGUIDED with light
+#: connections; the sun + HDRI scene 5-6.4, the glossy box 8-16) ...
+MODERATE = 5.0
+#: ... from which the LMDP is solved and GUIDED piloted with splitting ...
 NOISY = 25.0
 #: ... and at or above which GUIDED bakes without a guided pilot (measured: where unguided paths
 #: were this noisy, light through a hatch at 76-126, GUIDED won every guided pilot, 1.25-3.5x).
@@ -52,6 +63,13 @@ GUIDED_RAY_COST = 1.3
 #: rays per stratum + light samples)); a smaller bake stays unguided. GUIDED gained 2-3x where
 #: the pilot was noisy, so a build of half the bake's rays still pays.
 SOLVE_SHARE = 0.5
+#: The same share where unguided paths are only moderately noisy: GUIDED without splitting gained
+#: 1.1-1.25x there (sun + HDRI), and lost 0.75x on the glossy box, where the solve and the guided
+#: pilot cost 0.3-0.5 s, a quarter of a 64-sample bake at 128 px: they must stay a few per cent.
+MODERATE_SOLVE_SHARE = 0.02
+#: Least gain of GUIDED without splitting on the pilots for which a moderately noisy bake is
+#: guided (its pilot gains scatter: 1.09-1.39 on the sun + HDRI scene, 0.21-1.06 on the glossy box).
+MODERATE_GAIN = 1.1
 
 
 def pilot_samples(pilot_texels, samples):
@@ -69,6 +87,7 @@ class AutoChoice:
 
     relative_variance: float               #: of the unguided pilot, per path
     solved: bool = False                   #: the LMDP was solved (or reused) and piloted
+    moderate: bool = False                 #: moderately noisy: GUIDED piloted without splitting
     too_small: bool = False                #: noisy, but the bake too small to pay for a solve
     sure: bool = False                     #: so noisy that GUIDED baked without a guided pilot
     guided_gain: float = float("nan")      #: GUIDED's efficiency over UNGUIDED's on the pilots
@@ -83,18 +102,25 @@ class AutoChoice:
                     "but the bake is too small to pay for solving the LMDP: UNGUIDED with light connections "
                     "(more samples or texels, or a solution in the session, let it guide)")
         if not self.solved:
+            if self.relative_variance >= MODERATE:
+                return (f"AUTO: unguided paths were moderately noisy (relative variance "
+                        f"{self.relative_variance:.3g} per path), the bake too small to pay for solving the LMDP: "
+                        "no solve, UNGUIDED with light connections")
             return (f"AUTO: unguided paths were quiet (relative variance {self.relative_variance:.3g} per path, "
-                    f"below {NOISY:g}): no solve, UNGUIDED with light connections")
+                    f"below {MODERATE:g}): no solve, UNGUIDED with light connections")
         if self.sure:
             return (f"AUTO: unguided paths were very noisy (relative variance {self.relative_variance:.3g} per path, "
                     f"above {SURE:g}): solved the LMDP: GUIDED")
-        return (f"AUTO: unguided paths were noisy (relative variance {self.relative_variance:.3g} per path): "
-                f"solved the LMDP; GUIDED was {self.guided_gain:.2f}x as efficient on the pilots: {self.mode}")
+        guided = "GUIDED without splitting" if self.moderate else "GUIDED"
+        mode = guided if self.mode == "GUIDED" else self.mode
+        return (f"AUTO: unguided paths were {'moderately ' if self.moderate else ''}noisy (relative variance "
+                f"{self.relative_variance:.3g} per path): solved the LMDP; {guided} was {self.guided_gain:.2f}x "
+                f"as efficient on the pilots: {mode}")
 
     def as_dict(self):
         return dict(relative_variance=self.relative_variance, solved=self.solved, guided_gain=self.guided_gain,
                     mode=self.mode, samples=[list(s) for s in self.samples], too_small=self.too_small,
-                    sure=self.sure)
+                    sure=self.sure, moderate=self.moderate)
 
 
 def relative_variance(objects):
@@ -120,10 +146,11 @@ def efficiency(objects, ray_cost=1.0):
     return 1.0 / max(var * ray_cost * rays / max(paths, 1), 1e-300)
 
 
-def worth_solving(rays_per_path, texels, settings, samples):
+def worth_solving(rays_per_path, texels, settings, samples, share=None):
     """Whether the LMDP's build (points x (strata x rays per stratum + light samples) rays) costs
-    at most :data:`SOLVE_SHARE` of the rays of a bake of ``texels`` x ``samples`` paths of
-    ``rays_per_path`` rays (the unguided pilot's)."""
+    at most ``share`` (None: :data:`SOLVE_SHARE`) of the rays of a bake of ``texels`` x
+    ``samples`` paths of ``rays_per_path`` rays (the unguided pilot's)."""
+    share = SOLVE_SHARE if share is None else share
     build = int(settings.point_count) * (int(settings.strata_u) * int(settings.strata_v) * int(settings.rays_per_stratum)
                                          + int(settings.light_samples))
-    return build <= SOLVE_SHARE * rays_per_path * texels * int(samples)
+    return build <= share * rays_per_path * texels * int(samples)

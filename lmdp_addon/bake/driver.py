@@ -398,21 +398,24 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
         per_path = sum(ob.stats.total_rays for ob in first) / max(sum(ob.n_texels * ob.samples for ob in first), 1)
         texels = sum(t[4] for t in targets)
         noisy = choice.relative_variance >= auto.NOISY
+        moderate = not noisy and choice.relative_variance >= auto.MODERATE
         choice.too_small = noisy and lmdp is None and not auto.worth_solving(per_path, texels, settings, S)
-        if noisy and (lmdp is not None or (solve is not None and not choice.too_small)):
+        pays = noisy and not choice.too_small or moderate and auto.worth_solving(
+            per_path, texels, settings, S, auto.MODERATE_SOLVE_SHARE)
+        if (noisy or moderate) and (lmdp is not None or (solve is not None and pays)):
             if lmdp is None:
                 progress.begin("AUTO: solve")
                 lmdp = choice.lmdp = solve()
                 progress.end("solved")
                 seconds.update(getattr(lmdp, "seconds", {}) or {})
-            guided_settings = replace(settings, bake_mode="GUIDED")
+            guided_settings = replace(settings, bake_mode="GUIDED", **({"splitting": False} if moderate else {}))
             guided = make_tracer(scene, guided_settings, lmdp)
-            choice.solved = True
+            choice.solved, choice.moderate = True, moderate
             choice.sure = choice.relative_variance >= auto.SURE
             if not choice.sure:
                 second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress, threads)
                 choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
-            if choice.sure or choice.guided_gain > 1.0:
+            if choice.sure or choice.guided_gain > (auto.MODERATE_GAIN if moderate else 1.0):
                 mode, made, main_settings, used = "GUIDED", guided, guided_settings, lmdp
     choice.mode = mode
     choice.samples = ((mode, S),)
