@@ -48,7 +48,7 @@ class Settings:
     bake_resolution: int = 128        #: lightmap width = height in pixels
     bake_samples: int = 64            #: paths per texel
     bake_margin: int = 16             #: texels of dilation around UV islands (like Cycles)
-    guide_fraction: float = 0.5       #: probability of sampling u* (vs cosine) in GUIDED mode
+    guide_fraction: float = 0.75      #: probability of sampling u* (vs cosine) in GUIDED mode
     max_bounces: int = 8              #: path length N of the tracer (Russian roulette after 3);
                                       #: the Blender layer puts LightPaths.path_length here
     clamp_direct: float = 0.0         #: Cycles' sample clamp of light reaching the texel directly

@@ -13,6 +13,7 @@ import pytest
 from bake_scenes import SKY, assert_within, patch_under_sky, trace_at
 from lmdp_addon import bsdf
 from lmdp_addon import demo_geometry as scenes
+from lmdp_addon.bake import tracer as tracer_module
 from lmdp_addon.bake.gather import build_gather
 from lmdp_addon.bake.guide import build_guide
 from lmdp_addon.bake.tracer import IndirectTracer
@@ -54,10 +55,14 @@ def test_lambertian_scene_with_a_material_table_traces_bit_for_bit():
     assert np.array_equal(a, b)
 
 
-@pytest.mark.parametrize("mode,fraction", [("GUIDED", 0.5), ("GUIDED", 0.9), ("FINAL_GATHER", 0.5)])
-def test_guided_and_final_gather_on_a_glossy_patch(mode, fraction):
-    """GUIDED mixes the guide with the BSDF at glossy vertices (exact mixture pdf): unbiased for
-    every guide fraction."""
+@pytest.mark.parametrize("mode,fraction,cap", [("GUIDED", 0.5, None), ("GUIDED", 0.9, None), ("GUIDED", 0.9, 1.0),
+                                              ("FINAL_GATHER", 0.5, None)])
+def test_guided_and_final_gather_on_a_glossy_patch(mode, fraction, cap, monkeypatch):
+    """GUIDED mixes the guide with the BSDF at glossy vertices (exact mixture pdf, the guide's
+    share capped at ``GLOSSY_GUIDE_FRACTION``; ``cap`` 1: not capped): unbiased for every guide
+    fraction."""
+    if cap is not None:
+        monkeypatch.setattr(tracer_module, "GLOSSY_GUIDE_FRACTION", cap)
     scene = glossy_patch(0.3)
     lmdp = pipeline.run_all(scene, Settings(point_count=512, cost_mode="PHYSICAL"))
     guide = build_guide(scene, lmdp)
