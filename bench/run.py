@@ -67,7 +67,7 @@ def profiles():
             # the reference: plain path tracing (no light connections)
             dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder, settings={"light_share": 0.0}),
             dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=ladder),
-            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 64, 256)),
+            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 32, 64, 128, 256)),   # 32, 128: a finer curve for the time to Cycles
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts (defaults)", ladder=(16, 64, 256)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=ladder),
             dict(mode="GUIDED", name="GUIDED without splitting", ladder=(16, 64, 256), settings={"splitting": False}),
