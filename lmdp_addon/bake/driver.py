@@ -443,9 +443,10 @@ def _auto_texels(scene, plan, settings, name):
 
 def _auto_pilot(scene, targets, settings, made, part, progress, threads=None):
     """The ObjectBakes of an AUTO pilot: ``auto.pilot_samples`` samples at the ``targets``
-    texels (:func:`_auto_texels`) with the tracer ``made``, in two work units per object (on
-    ``threads``), on random streams of their own (seed ``PILOT_STREAMS · seed + part``): measurements
-    only, never part of the lightmaps."""
+    texels (:func:`_auto_texels`) with the tracer ``made``, in one work unit per object (a
+    pilot's arrays are too small for a second thread to gain: it waits on the first's Python),
+    on random streams of their own (seed ``PILOT_STREAMS · seed + part``): measurements only,
+    never part of the lightmaps."""
     tracer, guide, _ = made
     n = auto.pilot_samples(sum(len(t[2][0]) for t in targets), settings.bake_samples)
     s = replace(settings, bake_samples=n, seed=auto.PILOT_STREAMS * int(settings.seed) + part)
@@ -453,7 +454,7 @@ def _auto_pilot(scene, targets, settings, made, part, progress, threads=None):
     for number, name, texels, R, _ in targets:
         progress.begin(f"AUTO pilot ({settings.bake_mode}) {name}")
         out.append(bake_object(tracer, scene, name, s, object_number=number, guide=guide, progress=progress,
-                               threads=threads, texels=texels, resolution=R, min_units=2))
+                               threads=threads, texels=texels, resolution=R, min_units=1))
         progress.end(f"{out[-1].n_texels} texels")
     return out
 
