@@ -8,8 +8,9 @@ samples with the user's seed (the same bytes as that mode's bake), so the decisi
 
 1. *Unguided pilot*, with light connections: its relative variance per path,
    ``Σ n se² / (texels · mean²)`` over the pilot's texels and channels, says how hard the
-   scene is for unguided paths (measured: Cornell box 2.4, heavy box 2.9, sun + HDRI 5, glossy
-   box 10-11 per path; light through a hatch 76-126). Below :data:`MODERATE`: UNGUIDED, no solve.
+   scene is for unguided paths (measured: Cornell box 2.4-3.6, heavy box 2.9-3.9, sun + HDRI
+   5-6.4, glossy box 8-16 per path; light through a hatch 76-126). Below :data:`MODERATE`:
+   UNGUIDED, no solve.
 2. Noisy (at or above :data:`NOISY`), and the bake large enough that the LMDP's build costs at
    most :data:`SOLVE_SHARE` of its rays (:func:`worth_solving`), or a solution given: the LMDP is
    sampled, built and solved (or the given solution reused) and, below :data:`SURE`, a *guided
@@ -88,7 +89,7 @@ class AutoChoice:
     relative_variance: float               #: of the unguided pilot, per path
     solved: bool = False                   #: the LMDP was solved (or reused) and piloted
     moderate: bool = False                 #: moderately noisy: GUIDED piloted without splitting
-    too_small: bool = False                #: noisy, but the bake too small to pay for a solve
+    too_small: bool = False                #: (moderately) noisy, but the bake too small to pay for a solve
     sure: bool = False                     #: so noisy that GUIDED baked without a guided pilot
     guided_gain: float = float("nan")      #: GUIDED's efficiency over UNGUIDED's on the pilots
     mode: str = "UNGUIDED"                 #: the mode that baked the lightmaps
@@ -98,14 +99,11 @@ class AutoChoice:
     def sentence(self):
         """The Bake report's line."""
         if self.too_small:
-            return (f"AUTO: unguided paths were noisy (relative variance {self.relative_variance:.3g} per path), "
+            how = "moderately noisy" if self.relative_variance < NOISY else "noisy"
+            return (f"AUTO: unguided paths were {how} (relative variance {self.relative_variance:.3g} per path), "
                     "but the bake is too small to pay for solving the LMDP: UNGUIDED with light connections "
                     "(more samples or texels, or a solution in the session, let it guide)")
         if not self.solved:
-            if self.relative_variance >= MODERATE:
-                return (f"AUTO: unguided paths were moderately noisy (relative variance "
-                        f"{self.relative_variance:.3g} per path), the bake too small to pay for solving the LMDP: "
-                        "no solve, UNGUIDED with light connections")
             return (f"AUTO: unguided paths were quiet (relative variance {self.relative_variance:.3g} per path, "
                     f"below {MODERATE:g}): no solve, UNGUIDED with light connections")
         if self.sure:

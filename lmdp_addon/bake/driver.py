@@ -399,10 +399,10 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
         texels = sum(t[4] for t in targets)
         noisy = choice.relative_variance >= auto.NOISY
         moderate = not noisy and choice.relative_variance >= auto.MODERATE
-        choice.too_small = noisy and lmdp is None and not auto.worth_solving(per_path, texels, settings, S)
-        pays = noisy and not choice.too_small or moderate and auto.worth_solving(
-            per_path, texels, settings, S, auto.MODERATE_SOLVE_SHARE)
-        if (noisy or moderate) and (lmdp is not None or (solve is not None and pays)):
+        share = auto.MODERATE_SOLVE_SHARE if moderate else None
+        choice.too_small = (noisy or moderate) and lmdp is None and not auto.worth_solving(
+            per_path, texels, settings, S, share)
+        if (noisy or moderate) and (lmdp is not None or (solve is not None and not choice.too_small)):
             if lmdp is None:
                 progress.begin("AUTO: solve")
                 lmdp = choice.lmdp = solve()

@@ -112,7 +112,7 @@ def test_a_moderately_noisy_small_bake_does_not_solve(cornell, monkeypatch):
     monkeypatch.setattr(auto, "MODERATE", 0.0)
     result = baking.bake(cornell, ["Floor"], settings(bake_resolution=16), threads=2, solve=never)
     choice = result.auto
-    assert not choice.solved and not choice.moderate and choice.mode == "UNGUIDED"
+    assert not choice.solved and not choice.moderate and choice.too_small and choice.mode == "UNGUIDED"
     assert "moderately noisy" in choice.sentence() and "too small" in choice.sentence()
     plain = baking.bake(cornell, ["Floor"], settings(bake_mode="UNGUIDED", bake_resolution=16), threads=2)
     np.testing.assert_array_equal(result.object("Floor").value, plain.object("Floor").value)
