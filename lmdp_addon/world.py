@@ -205,7 +205,7 @@ def bin_of_direction(directions):
 # ---- the bake: next-event estimation of the world and the escaping rays' MIS weight ------------------
 
 def next_event(environment, points, normals, rng, caster, lift, geometric=None, mis=True, transparency=None,
-               bsdf=None, mis_hook=None):
+               bsdf=None):
     """``(values (k, 3) float32, shadow rays)``: the world-sampling half of the MIS estimate of
     the world's direct light D_w(y) = (1/π) ∫ L_env(ω) cos θ V(y, ω) dω at surface points
     ``points (k, 3)`` with (shading) ``normals`` of the lit side: one direction by
@@ -216,9 +216,7 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
     by world sampling, for paths that end at y). Directions below the geometric surface give 0,
     as the tracer's BSDF sampling absorbs them; ``transparency`` (or None) lets the shadow rays
     through cut-outs with ∏ (1 − alpha); at the points of ``bsdf`` (``bsdf.GlossyRows``, or None)
-    the value is ``L f cos / (p + p_bsdf)`` with their BSDF's f cos and density. ``mis_hook(rows,
-    p, q, d)`` (or None): a factor of a third strategy's share (light connections,
-    ``bake.connections.JoinState.world_hook``)."""
+    the value is ``L f cos / (p + p_bsdf)`` with their BSDF's f cos and density."""
     k = len(points)
     out = np.zeros((k, 3), np.float32)
     if k == 0 or not environment.lit:
@@ -249,25 +247,20 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
             f_cos, p_bsdf = bsdf.eval_at(vis[g], d[vis[g]].astype(np.float32))
             denom = p[vis[g]] + (p_bsdf if mis else 0.0)
             out[vis[g]] = L[vis[g]] * (f_cos / denom[:, None]).astype(np.float32)
-    if mis_hook is not None and len(vis):
-        out[vis] *= mis_hook(vis, p[vis], q, d[vis])[:, None]
     if passed is not None:
         out[vis] *= passed if passed.ndim == 2 else passed[:, None]
     return out, len(ok)
 
 
-def escape_weight(environment, directions, cos_from, pdf_from=None, mis_hook=None):
+def escape_weight(environment, directions, cos_from, pdf_from=None):
     """(k, 3) float32 ``L_env(ω) q / (q + p(ω))`` of rays escaping along ``directions (k, 3)``
     from a vertex where their cosine was ``cos_from (k,)`` (q = cos θ / π): the BSDF-sampling
     half of the MIS estimate of :func:`next_event`, to be multiplied by the rays' ``β w``.
     ``pdf_from`` (k,): the density that sampled each ray where it is not the cosine one (glossy
-    vertices; NaN: cos θ / π), used as q. ``mis_hook(p, q)`` (or None): a factor of a third
-    strategy's share (``bake.connections.JoinState.escape_hook``)."""
+    vertices; NaN: cos θ / π), used as q."""
     q = np.asarray(cos_from, dtype=np.float32) * np.float32(1.0 / np.pi)
     if pdf_from is not None:
         q = np.where(np.isnan(pdf_from), q, pdf_from).astype(np.float32)
     p = environment.pdf(directions)
     w = np.where(q > 0, q / np.maximum(q + p, np.float32(1e-30)), np.float32(0.0))
-    if mis_hook is not None and len(w):
-        w = w * mis_hook(p, q)
     return environment.radiance_at(directions) * w[:, None].astype(np.float32)

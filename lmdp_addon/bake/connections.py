@@ -30,17 +30,6 @@ two-strategy weights times ``(A + B) / (A + B + C)`` (:meth:`JoinState.hook`,
 
 G = cos θ_k cos θ' / r², cos_s / cos_g the shading over the geometric cosine of the light's
 arrival at y' (its f / (s P_lt), f the path's contribution to the estimate).
-
-**The environment map** (an HDRI world) is an emitter at infinity: with probability s a path
-also gets a *world* light vertex, a direction ω drawn as the world's light sample draws it
-(density ``p(ω)`` per steradian, ``EnvironmentMap.sample``), a point uniform on the disk of the
-scene's bounding sphere (radius R) facing ω and that ray's first hit y' travelling along -ω:
-y' has the density ``p(ω) cos_g / (π R²)`` per unit area and steradian. Its three strategies
-(the world's light sample at y_m, the BSDF ray from y_m escaping along ω, the connection) are
-weighted as above with ``A = pe_m p(ω)``, ``B = pe_m q``, ``C = s p(ω) q_g π / (π R²)`` (q_g π =
-the geometric cosine at y_m towards ω; :meth:`JoinState.world_hook`,
-:meth:`JoinState.escape_hook`), and a connection adds
-``β G(y_k, y') ρ(y') L_env(ω) R² (cos_s / cos_g)(y') / (π s p(ω)) x C / (A + B + C)``.
 """
 import numpy as np
 
@@ -55,23 +44,13 @@ def _ratio(shading, geometric):
 
 
 class LightVertices:
-    """The light vertices of one wavefront: per path at most one y' on the emitters' light
-    (``first``: its slot per path, position, normals, triangle, the densities of l at y' and the
-    light it sends, ``base`` = ρ(y') L_e (cos_s / cos_g) / (π s P_l p_side)) and at most one on the
-    environment map's (``world``: the same fields, ``base`` = ρ(y') L_env R² (cos_s / cos_g) /
-    (π s p(ω)))."""
+    """The light vertices of one wavefront: per path at most one y' (``first``: its slot per
+    path, position, normals, triangle, the densities of l at y' and the light it sends,
+    ``base`` = ρ(y') L_e (cos_s / cos_g) / (π s P_l p_side))."""
 
     def __init__(self, tracer, n, rng, stats):
         self.first = None
-        self.world = None
-        if not tracer.lights.empty:
-            self._sample(tracer, n, rng, stats)
-        if tracer.environment is not None:
-            self._sample_world(tracer, n, rng, stats)
-
-    def sets(self):
-        """The vertex sets that exist (``first``, ``world``)."""
-        return [f for f in (self.first, self.world) if f is not None]
+        self._sample(tracer, n, rng, stats)
 
     def _sample(self, tr, n, rng, stats):
         E, s = tr.lights, tr.light_share
@@ -110,65 +89,10 @@ class LightVertices:
         self.first = dict(slot=slot, y=y, ng=ng, tri=t, p_light=p_light, q=q,
                           s_lt=s * E.pdf_area32[e] * p_side * cos_g * INV_PI, base=base.astype(np.float32))
 
-    def _sample_world(self, tr, n, rng, stats):
-        """The world light vertices (module docstring): ω by the world's light sample, a point
-        uniform on the disk of radius R about the scene's bounding centre facing ω, the ray
-        along -ω from outside the sphere and its first connectable hit y'."""
-        s = tr.light_share
-        centre, R = tr.bounding_sphere
-        u = rng.random((n, 4))
-        take = np.flatnonzero(u[:, 3] < s)
-        if len(take) == 0:
-            return
-        om, p, radiance = tr.environment.sample(u[take, :3])
-        v = rng.random((len(take), 2))
-        good = np.flatnonzero(p > 0)
-        if len(good) == 0:
-            return
-        take, om, p, radiance, v = take[good], om[good].astype(np.float64), p[good], radiance[good], v[good]
-        t1, t2 = _frame(om)
-        rad = R * np.sqrt(v[:, 0])
-        phi = 2.0 * np.pi * v[:, 1]
-        origin = (centre + 2.0 * R * om + t1 * (rad * np.cos(phi))[:, None]
-                  + t2 * (rad * np.sin(phi))[:, None]).astype(np.float32)
-        d = (-om).astype(np.float32)
-        hit1 = _hits(tr, origin, d, stats)
-        if hit1 is None:
-            return
-        k, t, bu, bv, _ = hit1
-        path, d, p, radiance = take[k], d[k], p[k].astype(np.float64), radiance[k]
-        y, ns, ng, _, albedo = tr.hit_points(d, t, bu, bv)
-        cos_s = np.maximum(dot(ns, -d), 0.0).astype(np.float64)
-        cos_g = dot(ng, -d).astype(np.float64)
-        base = (_ratio(cos_s, cos_g) * R * R / (np.pi * s * p))[:, None] * albedo * radiance
-        slot = np.full(n, -1, np.int64)
-        slot[path] = np.arange(len(path))
-        self.world = dict(slot=slot, y=y, ng=ng, tri=t, p_light=p, q=cos_s * INV_PI,
-                          s_lt=s * p * np.maximum(cos_g, 0.0) / (np.pi * R * R), base=base.astype(np.float32))
-
     def extend(self, parents):
         """New paths (copies of a split, ``splitting``) that share the light vertices of ``parents``."""
-        for f in self.sets():
-            f["slot"] = np.concatenate([f["slot"], np.take(f["slot"], parents)])
-
-
-def _frame(n):
-    """Two unit vectors (k, 3) perpendicular to unit ``n (k, 3)`` and to each other (float64)."""
-    sign = np.where(n[:, 2] >= 0.0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
-    return t, np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
-
-
-def bounding_sphere(scene):
-    """``(centre (3,), radius)`` of a sphere about the usable triangles' corners (the box's
-    centre, its half diagonal, 1 % wider): the world light vertices' rays start outside it."""
-    v = scene.vertices[np.unique(scene.triangles[scene.usable_triangles()])].astype(np.float64)
-    if len(v) == 0:
-        return np.zeros(3), 1.0
-    lo, hi = v.min(0), v.max(0)
-    return 0.5 * (lo + hi), max(0.505 * float(np.linalg.norm(hi - lo)), 1e-6)
+        if self.first is not None:
+            self.first["slot"] = np.concatenate([self.first["slot"], np.take(self.first["slot"], parents)])
 
 
 def _hits(tr, origin, d, stats):
@@ -187,10 +111,9 @@ class JoinState:
     pe of the current vertex, whether the previous one was joined, whether the current one is
     connectable."""
 
-    def __init__(self, n, share, lights, bounding_radius=1.0):
+    def __init__(self, n, share, lights):
         self.share = share
         self.lights = lights
-        self.world_scale = share / (np.pi * bounding_radius * bounding_radius)   # C = scale p(ω) cos_g
         self.pe = np.full(n, np.inf)          # density of y_k from y_{k-1}
         self.joined = np.zeros(n, bool)       # y_k joined to its light vertex (set at y_k)
         self.joined_prev = np.zeros(n, bool)  # y_{k-1} was
@@ -238,34 +161,6 @@ class JoinState:
                               self._s_lt(ev, np.take(q_g, ray)))
         return share
 
-    def world_hook(self, idx, gnrm):
-        """``mis_hook`` of the world's light samples (``world.next_event``) at the current
-        vertices of the paths ``idx`` (geometric normals ``gnrm``): (A + B) / (A + B + C) with
-        the world vertices' C (module docstring)."""
-        def share(vis, p, q, d):
-            pth = np.take(idx, vis)
-            cos_g = np.maximum(dot(rows(gnrm, vis), d), 0.0).astype(np.float64)
-            return self._kept(np.take(self.pe, pth), np.take(self.joined_prev, pth), np.take(self.conn, pth),
-                              p.astype(np.float64), q.astype(np.float64),
-                              self.world_scale * p.astype(np.float64) * cos_g).astype(np.float32)
-        return share
-
-    def escape_hook(self, idx, gnrm, d):
-        """``mis_hook`` of the rays ``d`` just traced from the current vertices (geometric
-        normals ``gnrm``) that escape to the world (``world.escape_weight``): the same factor,
-        taken before :meth:`arrive`; None when no vertex counts."""
-        joined_prev, conn = np.take(self.joined_prev, idx), np.take(self.conn, idx)
-        if not np.any(joined_prev & conn):
-            return None
-        pe = np.take(self.pe, idx)
-        cos_g = np.maximum(dot(gnrm, d), 0.0).astype(np.float64)
-
-        def share(ray, p, q):
-            return self._kept(np.take(pe, ray), np.take(joined_prev, ray), np.take(conn, ray), p.astype(np.float64),
-                              q.astype(np.float64),
-                              self.world_scale * p.astype(np.float64) * np.take(cos_g, ray)).astype(np.float32)
-        return share
-
     def arrive(self, tr, idx, h, d, w, cos_prev, tri, dist):
         """The rays ``d`` of the paths ``idx`` (drawn with weights ``w`` and cosines ``cos_prev``)
         hit ``tri`` at ``dist`` (rows ``h``): the state moves on by one vertex."""
@@ -287,15 +182,11 @@ class JoinState:
 def connect(tr, L, lv, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, stats):
     """Joins the eye vertices ``pos`` of the paths ``idx`` (shading / geometric normals ``nrm`` /
     ``gnrm``, ray offsets ``lift``, throughput ``beta``, None: 1; the guide's ``states``;
-    ``first``: the texel points) to their light vertices (the emitters' and the world's) by shadow
-    rays and adds the light of the paths y → y' → light (a vertex ``bounce + 1``) with the
-    balance-heuristic weight C / (A + B + C)."""
-    for f in lv.sets():
-        _connect(tr, L, f, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, stats)
-
-
-def _connect(tr, L, f, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, stats):
-    """:func:`connect` for one set of light vertices ``f``."""
+    ``first``: the texel points) to their light vertices by shadow rays and adds the light of the
+    paths y → y' → l (a vertex ``bounce + 1``) with the balance-heuristic weight C / (A + B + C)."""
+    f = lv.first
+    if f is None:
+        return
     j = np.take(f["slot"], idx)
     has = np.flatnonzero(j >= 0)
     if len(has) == 0:
@@ -330,11 +221,10 @@ def _connect(tr, L, f, idx, pos, nrm, gnrm, lift, beta, states, first, bounce, s
     tr._add(L, idx[hv], value, bounce + 1, None, stats)
 
 
-def unavailable(mode, clamp, transparency, lights, max_bounces, environment=None):
+def unavailable(mode, clamp, transparency, lights, max_bounces):
     """Why a tracer of ``mode`` with the sample ``clamp`` (a ``SampleClamp`` or None), the
-    scene's ``transparency`` (None: opaque), its ``lights`` (``EmitterSampler``), its lit
-    ``environment`` map (or None) and path length ``max_bounces`` cannot join light vertices (a
-    sentence), or None when it can."""
+    scene's ``transparency`` (None: opaque), its ``lights`` (``EmitterSampler``) and path length
+    ``max_bounces`` cannot join light vertices (a sentence), or None when it can."""
     if mode not in ("UNGUIDED", "GUIDED"):
         return f"{mode} has no light connections"
     if clamp is not None and clamp.active:
@@ -342,9 +232,8 @@ def unavailable(mode, clamp, transparency, lights, max_bounces, environment=None
                 "Clamp Direct / Indirect 0 turns them on)")
     if transparency is not None:
         return "light connections off: the scene has transparent (alpha) materials"
-    if lights.empty and environment is None:
-        return ("light connections off: no emissive mesh and no environment map (lamps and a uniform world "
-                "keep their own sampling)")
+    if lights.empty:
+        return "light connections off: no emissive mesh (lamps and the world keep their own sampling)"
     if max_bounces < 1:
         return "light connections off: no bounce"
     return None
@@ -360,6 +249,5 @@ def off_reason(scene, settings):
     mode = "UNGUIDED" if settings.bake_mode == "AUTO" else settings.bake_mode   # AUTO's parts trace both
     if settings.light_share <= 0 or mode not in ("UNGUIDED", "GUIDED"):
         return None
-    env = getattr(scene, "environment", None)
     return unavailable(mode, SampleClamp.from_settings(settings), Transparency.of(scene),
-                       EmitterSampler(scene), settings.max_bounces, env if env is not None and env.lit else None)
+                       EmitterSampler(scene), settings.max_bounces)

@@ -220,10 +220,8 @@ class IndirectTracer:
         if self.glossy is None:
             self.total_limit = self.max_bounces
         self.light_share = float(light_share) if connections.unavailable(
-            mode, self.clamp, self.transparency, self.lights, self.max_bounces, self.environment) is None else 0.0
+            mode, self.clamp, self.transparency, self.lights, self.max_bounces) is None else 0.0
         if self.light_share > 0:
-            #: where the world light vertices' rays start (``connections.bounding_sphere``)
-            self.bounding_sphere = connections.bounding_sphere(scene)
             ok = (scene.triangle_geometry()[1] > 0) & ~scene.is_emissive()
             if self.glossy is not None:
                 ok &= ~self.glossy
@@ -297,7 +295,7 @@ class IndirectTracer:
         lv = joins = None      # light connections (``connections``)
         if self.light_share > 0:
             lv = connections.LightVertices(self, n, rng, stats)
-            joins = connections.JoinState(n, self.light_share, self.lights, self.bounding_sphere[1])
+            joins = connections.JoinState(n, self.light_share, self.lights)
             connections.connect(self, L, lv, idx, pos, nrm, gnrm, lift, None, states, True, 0, stats)
             joins.joined[idx] = True
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
@@ -319,15 +317,13 @@ class IndirectTracer:
                     beta = beta * tint
             stats.rays += len(idx)
             h = np.flatnonzero(tri >= 0)
-            hook = escape_hook = None
-            if joins is not None:   # the emitter hits' and escapes' share (of the vertex left), then move on
+            hook = None
+            if joins is not None:   # the emitter hits' share (of the vertex left), then move on
                 hook = joins.emission_hook(idx, gnrm, d)
-                if self.environment is not None:
-                    escape_hook = joins.escape_hook(idx, gnrm, d)
                 joins.arrive(self, idx, h, d, w, cos_prev, tri, dist)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
-                                  bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook, escape_hook=escape_hook)
+                                  bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook)
                 if self.lamp_hits:   # lamps the rays cross before their hit (they go on through)
                     self._lamps_found(L, idx, beta * w[:, None], origin, nrm, d, tri, dist, cos_prev, q_prev,
                                       bounce=bounce, rho0=rho0, stats=stats)
@@ -384,8 +380,7 @@ class IndirectTracer:
                 vstates = self.splitting.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
             # ---- next-event estimation at y_bounce ----
             samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows,
-                                          hook=None if joins is None else joins.hook(idx),
-                                          world_hook=None if joins is None else joins.world_hook(idx, gnrm))
+                                          hook=None if joins is None else joins.hook(idx))
             direct = _summed(samples)
             self._add_light_samples(L, idx, beta, samples, direct, bounce, rho0, stats)
             if joins is not None:    # light vertices joined to y_bounce (a vertex bounce + 1)
@@ -481,7 +476,7 @@ class IndirectTracer:
             ok &= ~glossy_rows.mask
         return ok
 
-    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, hook=None, world_hook=None):
+    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, hook=None):
         """The light-sampling half of the direct light D(y) at the points ``pos`` (shading
         normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``), one (k, 3) estimate per light
         kind: the emitters' MIS estimate (``lights``), Blender's lights (``lamps``; MIS-weighted
@@ -502,7 +497,7 @@ class IndirectTracer:
         if self.environment is not None:
             world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
                                                                geometric=geometric, transparency=self.transparency,
-                                                               bsdf=glossy_rows, mis_hook=world_hook)
+                                                               bsdf=glossy_rows)
             stats.shadow_rays += shadow_rays
             samples.append(world_direct)
         return samples
@@ -601,7 +596,7 @@ class IndirectTracer:
         return pos, nrm, gnrm, front, albedo
 
     def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None, bounce=2, rho0=None,
-                     stats=None, mis_hook=None, escape_hook=None):
+                     stats=None, mis_hook=None):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k = ``bounce`` >= 2,
         or 1 with the direct light of ``content``): the world through the rays that escape, the
         emitters through the rays ``h`` that hit geometry (the sampled-ray half of the MIS
@@ -610,10 +605,9 @@ class IndirectTracer:
         stats = stats if stats is not None else TraceStats()
         if self.environment is not None and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
-            share = None if escape_hook is None else (lambda p, q: escape_hook(miss, p, q))
             self._add(L, idx[miss], rows(bw, miss) * world_light.escape_weight(
                 self.environment, rows(d, miss), np.take(cos_prev, miss),
-                pdf_from=None if q_prev is None else np.take(q_prev, miss), mis_hook=share), bounce - 1, rho0, stats)
+                pdf_from=None if q_prev is None else np.take(q_prev, miss)), bounce - 1, rho0, stats)
         elif self.world_lit and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
             self._add(L, idx[miss], rows(bw, miss) * self.world, bounce - 1, rho0, stats)
