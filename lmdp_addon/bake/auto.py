@@ -90,6 +90,7 @@ class AutoChoice:
     solved: bool = False                   #: the LMDP was solved (or reused) and piloted
     moderate: bool = False                 #: moderately noisy: GUIDED piloted without splitting
     too_small: bool = False                #: (moderately) noisy, but the bake too small to pay for a solve
+    no_solution: bool = False              #: (moderately) noisy, but no solution given and no solve to call
     sure: bool = False                     #: so noisy that GUIDED baked without a guided pilot
     guided_gain: float = float("nan")      #: GUIDED's efficiency over UNGUIDED's on the pilots
     mode: str = "UNGUIDED"                 #: the mode that baked the lightmaps
@@ -103,6 +104,10 @@ class AutoChoice:
             return (f"AUTO: unguided paths were {how} (relative variance {self.relative_variance:.3g} per path), "
                     "but the bake is too small to pay for solving the LMDP: UNGUIDED with light connections "
                     "(more samples or texels, or a solution in the session, let it guide)")
+        if self.no_solution:
+            how = "moderately noisy" if self.relative_variance < NOISY else "noisy"
+            return (f"AUTO: unguided paths were {how} (relative variance {self.relative_variance:.3g} per path), "
+                    "but no LMDP solution was given to guide them: UNGUIDED with light connections")
         if not self.solved:
             return (f"AUTO: unguided paths were quiet (relative variance {self.relative_variance:.3g} per path, "
                     f"below {MODERATE:g}): no solve, UNGUIDED with light connections")
@@ -118,7 +123,7 @@ class AutoChoice:
     def as_dict(self):
         return dict(relative_variance=self.relative_variance, solved=self.solved, guided_gain=self.guided_gain,
                     mode=self.mode, samples=[list(s) for s in self.samples], too_small=self.too_small,
-                    sure=self.sure, moderate=self.moderate)
+                    sure=self.sure, moderate=self.moderate, no_solution=self.no_solution)
 
 
 def relative_variance(objects):

@@ -402,6 +402,7 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
         share = auto.MODERATE_SOLVE_SHARE if moderate else None
         choice.too_small = (noisy or moderate) and lmdp is None and not auto.worth_solving(
             per_path, texels, settings, S, share)
+        choice.no_solution = (noisy or moderate) and lmdp is None and solve is None and not choice.too_small
         if (noisy or moderate) and (lmdp is not None or (solve is not None and not choice.too_small)):
             if lmdp is None:
                 progress.begin("AUTO: solve")

@@ -105,6 +105,18 @@ def test_a_small_bake_stays_unguided(narrow, monkeypatch):
     assert auto.worth_solving(6.0, 9000, settings(), 64)
 
 
+def test_a_noisy_bake_without_a_solver_says_so(narrow):
+    """Noisy and large enough to solve (64 px x 64 samples), but no solution given and no
+    ``solve`` to call (an engine caller): UNGUIDED, and the report says it was noisy and why it
+    was not guided, not that it was quiet."""
+    result = baking.bake(narrow, ["RoomAFloor"], settings(bake_resolution=64, bake_samples=64), threads=2)
+    choice = result.auto
+    assert choice.relative_variance >= auto.NOISY and not choice.too_small
+    assert choice.no_solution and not choice.solved and choice.mode == "UNGUIDED"
+    assert "noisy" in choice.sentence() and "no LMDP solution" in choice.sentence()
+    assert "quiet" not in choice.sentence() and choice.as_dict()["no_solution"]
+
+
 def test_a_moderately_noisy_small_bake_does_not_solve(cornell, monkeypatch):
     """Moderately noisy (``MODERATE`` lowered below the Cornell floor's ~2.4-3) but 16 px x 32
     samples: the build would cost more than ``MODERATE_SOLVE_SHARE`` of the bake's rays: no solve,
