@@ -84,12 +84,13 @@ def _frame(n):
     return t, s
 
 
-def _uniform_cone(axis, one_minus_cos, u):
-    """Directions (k, 3) uniform in the cones about unit ``axis (k, 3)`` with ``1 - cos θ_max``."""
+def _uniform_cone(axis, one_minus_cos, u, frame=None):
+    """Directions (k, 3) uniform in the cones about unit ``axis (k, 3)`` with ``1 - cos θ_max``
+    (``frame``: :func:`_frame` of ``axis``, if known)."""
     cos_t = 1.0 - u[:, 0] * one_minus_cos
     sin_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0))
     phi = 2.0 * np.pi * u[:, 1]
-    t, s = _frame(axis)
+    t, s = _frame(axis) if frame is None else frame
     return (t * (sin_t * np.cos(phi))[:, None] + s * (sin_t * np.sin(phi))[:, None]
             + axis * cos_t[:, None])
 
@@ -261,7 +262,9 @@ class Lamps:
             half = 0.5 * self.angle[ls]
             omc = 2.0 * np.sin(0.5 * half) ** 2
             cone = half > 0
-            d[s] = np.where(cone[:, None], _uniform_cone(to_sun, np.where(cone, omc, 0.0), u[s]), to_sun)
+            t_all, s_all = _frame(-self.axis)                    # per lamp, then per sample
+            frame = (t_all[ls], s_all[ls])
+            d[s] = np.where(cone[:, None], _uniform_cone(to_sun, np.where(cone, omc, 0.0), u[s], frame), to_sun)
             dist[s] = SUN_DISTANCE
             weight[s] = np.where(cone, 2.0 * np.pi * omc, 1.0)
         # ---- area lights: uniform on the rectangle / ellipse, one-sided, the spread's attenuation ----
