@@ -99,13 +99,12 @@ class AutoChoice:
 
     def sentence(self):
         """The Bake report's line."""
+        how = "moderately noisy" if self.relative_variance < NOISY else "noisy"
         if self.too_small:
-            how = "moderately noisy" if self.relative_variance < NOISY else "noisy"
             return (f"AUTO: unguided paths were {how} (relative variance {self.relative_variance:.3g} per path), "
                     "but the bake is too small to pay for solving the LMDP: UNGUIDED with light connections "
                     "(more samples or texels, or a solution in the session, let it guide)")
         if self.no_solution:
-            how = "moderately noisy" if self.relative_variance < NOISY else "noisy"
             return (f"AUTO: unguided paths were {how} (relative variance {self.relative_variance:.3g} per path), "
                     "but no LMDP solution was given to guide them: UNGUIDED with light connections")
         if not self.solved:

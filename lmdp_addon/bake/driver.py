@@ -400,9 +400,9 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
         noisy = choice.relative_variance >= auto.NOISY
         moderate = not noisy and choice.relative_variance >= auto.MODERATE
         share = auto.MODERATE_SOLVE_SHARE if moderate else None
-        choice.too_small = (noisy or moderate) and lmdp is None and not auto.worth_solving(
-            per_path, texels, settings, S, share)
-        choice.no_solution = (noisy or moderate) and lmdp is None and solve is None and not choice.too_small
+        unsolved = (noisy or moderate) and lmdp is None      # wants a solution it was not given
+        choice.too_small = unsolved and not auto.worth_solving(per_path, texels, settings, S, share)
+        choice.no_solution = unsolved and solve is None and not choice.too_small
         if (noisy or moderate) and (lmdp is not None or (solve is not None and not choice.too_small)):
             if lmdp is None:
                 progress.begin("AUTO: solve")

@@ -734,8 +734,9 @@ class IndirectTracer:
         GUIDED mode at rows with a state (``states`` of the wavefront, -1: none) from the
         one-sample mixture ``α g_s + (1 - α) p_bsdf`` (α at most :data:`GLOSSY_GUIDE_FRACTION`;
         u[:, 2] < α picks the guide, else it is rescaled to pick the lobe): the weight
-        ``f cos / p`` joins β (w = 1, 0 when absorbed); returns ``(d, w, beta, q, lobe)`` with q (k,) float32 the BSDF density of those rays (NaN
-        on the other rows; the MIS partition of unity, as next-event estimation uses it) and
+        ``f cos / p`` joins β (w = 1, 0 when absorbed); returns ``(d, w, beta, q, lobe)`` with q
+        (k,) float32 the BSDF density of those rays (NaN on the other rows; the MIS partition of
+        unity, as next-event estimation uses it) and
         lobe (k,) int16 1 where a microfacet lobe was sampled (a glossy bounce). ``cycles_ratio``
         (k,) float32: its glossy rows are set to Cycles' weight over theirs (1 without a guide)."""
         g = np.flatnonzero(glossy_rows.mask)
