@@ -38,6 +38,9 @@ from bench import common  # noqa: E402
 from bench.common import DEFAULT_NAME, RESULTS, log  # noqa: E402
 
 SECTIONS = ("bake", "build", "solve", "convergence", "policy", "farm")
+#: Plain path tracing, the issue's reference: cosine directions and light sampling, without the
+#: bake's light connections and world portals.
+PLAIN = {"light_share": 0.0, "world_portals": False}
 
 
 def profiles():
@@ -62,11 +65,15 @@ def profiles():
         cycles_ladder=(1, 4, 16, 64, 256),
         # Cycles with Open PGL guiding: a column beside Cycles (the heavy scene without 256 samples,
         # which alone would add about a minute per repeat).
-        cycles_guided_ladder={"cornell": (16, 64, 256), "narrow_opening": (16, 64, 256), "heavy": (16, 64)},
+        cycles_guided_ladder={"cornell": (16, 64, 256), "narrow_opening": (16, 64, 256), "heavy": (16, 64),
+                              "sun_hdri": (16, 64, 256), "glossy": (16, 64, 256)},
         lmdp_methods=[
-            # the reference: plain path tracing (no light connections)
-            dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder, settings={"light_share": 0.0}),
-            dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=ladder),
+            # the reference: plain path tracing (no light connections, the map's own world samples)
+            dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder, settings=PLAIN),
+            dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=ladder,
+                 settings={"world_portals": False}),
+            dict(mode="UNGUIDED", name="UNGUIDED + world portals", ladder=ladder, cases=("sun_hdri",),
+                 settings={"light_share": 0.0}),
             dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 32, 64, 128, 256)),   # 32, 128: a finer curve for the time to Cycles
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts (defaults)", ladder=(16, 64, 256)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=ladder),
@@ -92,8 +99,11 @@ def profiles():
         cycles_ladder=(1, 4, 16, 64),
         cycles_guided_ladder={"cornell": (16, 64), "narrow_opening": (16, 64)},
         lmdp_methods=[
-            dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64), settings={"light_share": 0.0}),
-            dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=(4, 16, 64)),
+            dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64), settings=PLAIN),
+            dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=(4, 16, 64),
+                 settings={"world_portals": False}),
+            dict(mode="UNGUIDED", name="UNGUIDED + world portals", ladder=(4, 16, 64), cases=("sun_hdri",),
+                 settings={"light_share": 0.0}),
             dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 64)),
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts", ladder=(16, 64)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=(4, 16, 64)),

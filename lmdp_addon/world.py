@@ -34,6 +34,7 @@ import numpy as np
 from .transparency import reaches
 
 TWO_PI_SQUARED = 2.0 * np.pi * np.pi
+LUMINANCE32 = np.array([0.2126, 0.7152, 0.0722], np.float32)
 #: Equal-area world bins of the LMDP's directional world terminal: bands of equal cos θ times
 #: sectors of equal φ (each 4π / (Z Φ) sr).
 WORLD_BINS_Z = 4
@@ -133,44 +134,61 @@ class EnvironmentMap:
         return top + fy * ((c + fx * (e - c)) - top)
 
     # ---- importance sampling ---------------------------------------------------------------------
-    def pdf(self, directions):
+    def pdf(self, directions, regions=None):
         """(k,) float32 density per steradian with which :meth:`sample` draws world
-        ``directions (k, 3)`` (eq. 2; 0 where the map is black)."""
+        ``directions (k, 3)`` (eq. 2; 0 where the map is black; ``regions`` ignored, as in
+        :meth:`sample`)."""
         u, v = self.map_uv(directions)
         return self._pdf_uv(u, v)
 
-    def _pdf_uv(self, u, v):
+    def _pdf_uv(self, u, v, pixel=None):
         H, W = self.height, self.width
-        j = np.minimum(np.floor(u * W).astype(np.int64), W - 1) % W
-        i = np.clip(np.floor(v * H).astype(np.int64), 0, H - 1)
+        pixel = self.pixel_of_uv(u, v) if pixel is None else pixel
         sin_theta = np.sin(np.pi * (1.0 - v))
-        p = self.pixel_prob[i * W + j] * (W * H / TWO_PI_SQUARED) / np.maximum(sin_theta, 1e-20)
+        p = self.pixel_prob[pixel] * (W * H / TWO_PI_SQUARED) / np.maximum(sin_theta, 1e-20)
         return np.where(sin_theta > 0, p, 0.0).astype(np.float32)
 
-    def sample(self, r):
+    def sample(self, r, regions=None):
         """Directions by the map's radiance: ``r (k, 3)`` uniforms in [0, 1) -> ``(directions
         (k, 3) float32 world space, pdf (k,) float32 per steradian, radiance (k, 3) float32)``
-        (eq. 2; an all-black map gives pdf 0)."""
+        (eq. 2; an all-black map gives pdf 0). ``regions`` is ignored: the same density
+        everywhere (``bake.portals.PortalSampler`` takes it)."""
         r = np.asarray(r)
         k = len(r)
         if not self.lit or k == 0:
             return np.zeros((k, 3), np.float32), np.zeros(k, np.float32), np.zeros((k, 3), np.float32)
-        H, W = self.height, self.width
         # the pixels by the CDF, the uniforms searched in increasing order (the same pixels; the
         # binary searches then share their cache lines: 3x faster on a 1024 x 512 map)
         order = np.argsort(r[:, 0])
         pixel = np.empty(k, np.int64)
-        pixel[order] = np.minimum(np.searchsorted(self.cdf, r[order, 0], side="right"), H * W - 1)
+        pixel[order] = np.minimum(np.searchsorted(self.cdf, r[order, 0], side="right"), self.height * self.width - 1)
+        d, p, L, _ = self.pixel_directions(pixel, r[:, 1], r[:, 2])
+        return d, p, L
+
+    def pixel_directions(self, pixel, r1, r2):
+        """``(directions (k, 3) float32, pdf (k,) float32, radiance (k, 3) float32, pixel)``:
+        points uniform in the map's pixels ``pixel (k,)`` (row-major numbers; ``r1, r2`` (k,)
+        uniforms across and up the pixel) as world directions, with the density eq. 2 and the
+        radiance there."""
+        H, W = self.height, self.width
         i, j = pixel // W, pixel % W
-        u = (j + r[:, 1]) / W
-        v = (i + r[:, 2]) / H
+        u = (j + r1) / W
+        v = (i + r2) / H
         theta = np.pi * (1.0 - v)
         phi = np.pi - 2.0 * np.pi * u
         s = np.sin(theta)
         d_map = np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(theta)], axis=1)
         d = (d_map @ self.rotation).astype(np.float32)     # R^-1 = R^T: back to the world frame
         p = np.where(s > 0, self.pixel_prob[pixel] * (W * H / TWO_PI_SQUARED) / np.maximum(s, 1e-20), 0.0)
-        return d, p.astype(np.float32), self._lookup(u, v)
+        return d, p.astype(np.float32), self._lookup(u, v), pixel
+
+    def pixel_of_uv(self, u, v):
+        """(k,) int64 row-major pixel number of map coordinates ``u, v`` (k,) (the pixel whose
+        density :meth:`pdf` reads)."""
+        H, W = self.height, self.width
+        j = np.minimum(np.floor(u * W).astype(np.int64), W - 1) % W
+        i = np.clip(np.floor(v * H).astype(np.int64), 0, H - 1)
+        return i * W + j
 
     # ---- the LMDP's directional world terminal -----------------------------------------------------
     def bin_radiance(self, per_side=16):
@@ -217,7 +235,7 @@ def bin_of_direction(directions):
 # ---- the bake: next-event estimation of the world and the escaping rays' MIS weight ------------------
 
 def next_event(environment, points, normals, rng, caster, lift, geometric=None, mis=True, transparency=None,
-               bsdf=None):
+               bsdf=None, regions=None, record=None):
     """``(values (k, 3) float32, shadow rays)``: the world-sampling half of the MIS estimate of
     the world's direct light D_w(y) = (1/π) ∫ L_env(ω) cos θ V(y, ω) dω at surface points
     ``points (k, 3)`` with (shading) ``normals`` of the lit side: one direction by
@@ -228,12 +246,17 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
     by world sampling, for paths that end at y). Directions below the geometric surface give 0,
     as the tracer's BSDF sampling absorbs them; ``transparency`` (or None) lets the shadow rays
     through cut-outs with ∏ (1 − alpha); at the points of ``bsdf`` (``bsdf.GlossyRows``, or None)
-    the value is ``L f cos / (p + p_bsdf)`` with their BSDF's f cos and density."""
+    the value is ``L f cos / (p + p_bsdf)`` with their BSDF's f cos and density.
+    ``environment``: the :class:`EnvironmentMap`, or a sampler of its light with the same
+    ``sample`` / ``pdf`` / ``radiance_at`` whose density depends on the points' ``regions`` (k,)
+    (``bake.portals.PortalSampler``). ``record(rows, directions, values)``: receives the rows
+    whose sample was above the surface, their directions and the world-sampling estimate alone
+    ``L cos / (π p)`` of each, 0 where occluded (``bake.portals.PortalProbe``)."""
     k = len(points)
     out = np.zeros((k, 3), np.float32)
     if k == 0 or not environment.lit:
         return out, 0
-    d, p, L = environment.sample(rng.random((k, 3)))
+    d, p, L = environment.sample(rng.random((k, 3)), regions)
     cos = np.einsum("ij,ij->i", normals, d)
     g = normals if geometric is None else geometric
     valid = (cos > 0) & (p > 0)
@@ -242,6 +265,8 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
     ok = np.flatnonzero(valid)
     if len(ok) == 0:
         return out, 0
+    if record is not None:
+        seen_value = np.zeros(len(ok), np.float32)
     origin = points[ok] + np.asarray(lift, dtype=np.float32)[ok, None] * g[ok]
     if transparency is None:
         blocked = caster.occluded(origin, d[ok], np.full(len(ok), np.inf, np.float32))
@@ -251,6 +276,12 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
         seen = reaches(T)
         vis, passed = ok[seen], T[seen]
     q = cos[vis] * np.float32(1.0 / np.pi)
+    if record is not None:
+        at = np.searchsorted(ok, vis)
+        seen_value[at] = (L[vis] @ LUMINANCE32) * (q / p[vis])
+        if passed is not None:
+            seen_value[at] *= passed @ LUMINANCE32 if passed.ndim == 2 else passed
+        record(ok, d[ok], seen_value)
     weight = q / (p[vis] + q) if mis else q / p[vis]
     out[vis] = L[vis] * weight[:, None].astype(np.float32)
     if bsdf is not None:
@@ -264,15 +295,16 @@ def next_event(environment, points, normals, rng, caster, lift, geometric=None, 
     return out, len(ok)
 
 
-def escape_weight(environment, directions, cos_from, pdf_from=None):
+def escape_weight(environment, directions, cos_from, pdf_from=None, regions=None):
     """(k, 3) float32 ``L_env(ω) q / (q + p(ω))`` of rays escaping along ``directions (k, 3)``
     from a vertex where their cosine was ``cos_from (k,)`` (q = cos θ / π): the BSDF-sampling
     half of the MIS estimate of :func:`next_event`, to be multiplied by the rays' ``β w``.
     ``pdf_from`` (k,): the density that sampled each ray where it is not the cosine one (glossy
-    vertices; NaN: cos θ / π), used as q."""
+    vertices; NaN: cos θ / π), used as q. ``regions`` (k,): the regions of the vertices the
+    rays left, for a sampler whose density depends on them (:func:`next_event`)."""
     q = np.asarray(cos_from, dtype=np.float32) * np.float32(1.0 / np.pi)
     if pdf_from is not None:
         q = np.where(np.isnan(pdf_from), q, pdf_from).astype(np.float32)
-    p = environment.pdf(directions)
+    p = environment.pdf(directions, regions)
     w = np.where(q > 0, q / np.maximum(q + p, np.float32(1e-30)), np.float32(0.0))
     return environment.radiance_at(directions) * w[:, None].astype(np.float32)

@@ -280,6 +280,9 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
                     f"({baked.solved.states.n_points} points, {sum(baked.solved.seconds.values()):.2f} s)")
     if baked.light_paths is not None:
         message += f"; {baked.light_paths.summary()}"
+    if result.portals.get("used"):
+        message += (f"; world portals ({100 * result.portals['probe_visible']:.0f} % of the probe's world samples "
+                    f"saw the world, {result.portals['regions']} region(s))")
     if any(ob.stats.light_vertices for ob in result.objects):
         message += f"; light connections (share {settings.light_share:g})"
     elif baked.connections_off:

@@ -221,6 +221,13 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
                     "paths in dim places end sooner (unbiased)",
         default=_DEFAULTS.splitting,
     )
+    world_portals: BoolProperty(
+        name="World Portals",
+        description="HDRI worlds: a probe of a few thousand paths learns which parts of the environment map the "
+                    "baked surfaces see (through windows and openings) and the bake sends the world's light "
+                    "samples there, per object (unbiased; AUTO's first measurement is the probe)",
+        default=_DEFAULTS.world_portals,
+    )
     light_paths: EnumProperty(
         name="Light Paths",
         description="Where the bake's path length comes from: the scene's Cycles Light Paths "

@@ -41,7 +41,7 @@ import numpy as np
 from ..farm import session as farm_session
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
-from . import auto
+from . import auto, portals as world_portals
 from .checks import check_bake, check_texels, object_index, object_texels
 from .clamp import SampleClamp
 from .content import BakeContent
@@ -311,10 +311,11 @@ def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_num
 
 # ---- the bake ---------------------------------------------------------------------------------------
 
-def make_tracer(scene, settings, lmdp=None, caster=None):
+def make_tracer(scene, settings, lmdp=None, caster=None, portals=None):
     """``(IndirectTracer, StateGuide or None, guide info dict)`` of ``settings.bake_mode`` for
     ``scene``. The bake reuses the build's BVH (``lmdp.dynamics.caster``) when the traced scene
-    is the one the states were sampled on, and the build's locator (``guide.build_guide``)."""
+    is the one the states were sampled on, and the build's locator (``guide.build_guide``).
+    ``portals``: the world portals its environment map's light samples follow (``portals``)."""
     mode = settings.bake_mode
     guide = gather = None
     info = {}
@@ -344,6 +345,7 @@ def make_tracer(scene, settings, lmdp=None, caster=None):
                             min_light_bounces=getattr(settings, "min_light_bounces", 0),
                             light_share=getattr(settings, "light_share", 0.0),
                             splitting=split)
+    tracer.use_portals(portals)
     return tracer, guide, info
 
 
@@ -391,9 +393,13 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
     unguided = make_tracer(scene, unguided_settings, None)
     choice = auto.AutoChoice(relative_variance=float("nan"))
     mode, made, main_settings, used = "UNGUIDED", unguided, unguided_settings, None
+    probe = _portal_probe(unguided[0], settings)
+    portals = None
     if S >= auto.MIN_SAMPLES:
         targets = [_auto_texels(scene, plan, settings, name) for name in names]
+        unguided[0].world_probe = probe           # the unguided pilot is the portals' probe too
         first = _auto_pilot(scene, targets, unguided_settings, unguided, 1, progress, threads)
+        unguided[0].world_probe = None
         choice.relative_variance = auto.relative_variance(first)
         per_path = sum(ob.stats.total_rays for ob in first) / max(sum(ob.n_texels * ob.samples for ob in first), 1)
         texels = sum(t[4] for t in targets)
@@ -418,26 +424,34 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
                 choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
             if choice.sure or choice.guided_gain > (auto.MODERATE_GAIN if moderate else 1.0):
                 mode, made, main_settings, used = "GUIDED", guided, guided_settings, lmdp
+    elif probe is not None:                       # too few samples for pilots: a probe of its own
+        portals = _run_portal_probe(scene, plan, settings, names, unguided[0], probe, progress, threads)
+    if probe is not None and portals is None and S >= auto.MIN_SAMPLES:
+        portals = world_portals.learn(probe)
+    # Both pilots drew the map's own world samples, so that they compare the two modes alike;
+    # the bake draws them through the portals the unguided pilot found.
+    made[0].use_portals(portals)
     choice.mode = mode
     choice.samples = ((mode, S),)
     seconds["auto"] = time.perf_counter() - t0        # pilots, solve, guide: before the bake itself
     result = _bake(scene, names, main_settings, used, progress, None, threads, plan, farm, made=made)
     result.seconds = {**seconds, **result.seconds, "bake": time.perf_counter() - t0}
     result.mode, result.settings, result.auto = "AUTO", settings.as_dict(), choice
+    result.portals = _portals_info(portals, probe)
     return result
 
 
-def _auto_texels(scene, plan, settings, name):
+def _auto_texels(scene, plan, settings, name, count=auto.PILOT_TEXELS):
     """``(object number, name, (TexelSet, triangles), resolution, texels of the object)`` of a
-    pilot of AUTO: every k-th texel of the object, k such that all objects together give about
-    :data:`auto.PILOT_TEXELS` texels."""
+    pilot of AUTO (or a portal probe): every k-th texel of the object, k such that all objects
+    together give about ``count`` texels."""
     index = object_index(scene, name)
     same = plan.resolution == int(settings.bake_resolution)
     R = plan.resolution_of(index) if same else int(settings.bake_resolution)
     texels = plan.texels.get(index) if same else None
     ts, tris = texels if texels is not None else object_texels(scene, index, R)
     total = sum(len(t[0]) for t in plan.texels.values()) if same and plan.texels else len(ts)
-    stride = max(1, -(-total // auto.PILOT_TEXELS))
+    stride = max(1, -(-total // int(count)))
     number = plan.names.index(name) if name in plan.names else 0
     return number, name, (ts.subset(slice(0, None, stride)), tris), R, len(ts)
 
@@ -460,6 +474,50 @@ def _auto_pilot(scene, targets, settings, made, part, progress, threads=None):
     return out
 
 
+# ---- world portals ---------------------------------------------------------------------------------
+
+def _portal_probe(tracer, settings):
+    """A :class:`portals.PortalProbe` for a bake with ``tracer`` when ``settings.world_portals`` is
+    on and the scene has an environment map that lights it, else None."""
+    if not getattr(settings, "world_portals", False) or tracer.environment is None:
+        return None
+    return world_portals.PortalProbe(tracer.scene)
+
+
+def _run_portal_probe(scene, plan, settings, names, tracer, probe, progress, threads):
+    """:data:`portals.PROBE_PATHS` unguided paths (no light connections) from every k-th texel of
+    the baked objects, on a random stream of their own (seed ``PILOT_STREAMS · seed + 3``),
+    recorded by ``probe``; returns the learned :class:`portals.Portals` (or None)."""
+    probe_settings = replace(settings, bake_mode="UNGUIDED", light_share=0.0,
+                             bake_samples=world_portals.PROBE_SAMPLES,
+                             seed=auto.PILOT_STREAMS * int(settings.seed) + 3)
+    probe_tracer = make_tracer(scene, probe_settings, None, caster=tracer.caster)[0]
+    probe_tracer.world_probe = probe
+    count = world_portals.PROBE_PATHS // world_portals.PROBE_SAMPLES
+    progress.begin("world portals: probe")
+    for number, name, texels, R, _ in [_auto_texels(scene, plan, settings, n, count) for n in names]:
+        bake_object(probe_tracer, scene, name, probe_settings, object_number=number, progress=progress,
+                    threads=threads, texels=texels, resolution=R, min_units=1)
+    portals = world_portals.learn(probe)
+    progress.end(_portals_sentence(portals, probe))
+    return portals
+
+
+def _portals_sentence(portals, probe):
+    if portals is None:
+        return f"{probe.samples} world samples, none saw the world: the map's own sampling"
+    return (f"{probe.samples} world samples, {100 * portals.info['probe_visible']:.0f} % saw the world; "
+            f"{portals.info['regions']} region(s)")
+
+
+def _portals_info(portals, probe):
+    """``BakeResult.portals``: what the probe learned (empty without one)."""
+    if probe is None:
+        return {}
+    return {"used": portals is not None, **(portals.info if portals is not None else
+                                            {"probe_samples": probe.samples})}
+
+
 def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None):
     """:func:`bake` with the scene's derived geometry held and its plan (``made``: the
     :func:`make_tracer` triple of ``settings`` and ``lmdp`` to trace with, made here when None;
@@ -469,12 +527,15 @@ def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, p
     names = [n for n in names if n in plan.names]      # the texel checks may leave objects out
     t0 = time.perf_counter()
     tracer, guide, info = made if made is not None else make_tracer(scene, settings, lmdp)
+    probe = _portal_probe(tracer, settings) if made is None else None
+    if probe is not None:        # the world portals (AUTO found its own with its pilot)
+        tracer.use_portals(_run_portal_probe(scene, plan, settings, names, tracer, probe, progress, threads))
     setup = time.perf_counter() - t0
     same = plan.resolution == int(settings.bake_resolution)
     texels = plan.texels if same else {}
     objects = []
     farm = farm if farm is not None else farm_session.current()
-    with farm.bake_units(scene, settings, lmdp) if farm is not None else nullcontext() as runner:
+    with farm.bake_units(scene, settings, lmdp, tracer.portals) if farm is not None else nullcontext() as runner:
         for number, name in enumerate(names):
             progress.begin(f"bake {name}")
             index = object_index(scene, name)
@@ -490,7 +551,7 @@ def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, p
     seconds["bake"] = time.perf_counter() - t0
     return BakeResult(mode=settings.bake_mode, objects=objects, settings=settings.as_dict(),
                       seconds=seconds, warnings=list(plan.warnings) + list(plan.texel_warnings),
-                      guide_info=info, atlases=atlases)
+                      guide_info=info, atlases=atlases, portals=_portals_info(tracer.portals, probe))
 
 
 def compose_atlas(name, objects, margin):

@@ -100,6 +100,8 @@ class BakeResult:
     atlases: list = field(default_factory=list)   #: :class:`AtlasBake` of an atlas bake
     #: AUTO: the ``auto.AutoChoice`` of its parts (None: another mode)
     auto: object = None
+    #: World portals (``portals.Portals.info`` and the probe's seconds; empty: not used)
+    portals: dict = field(default_factory=dict)
 
     def outputs(self):
         """The images to write: each object that has its own (``ObjectBake``), then each atlas
@@ -162,6 +164,7 @@ class BakeResult:
                         for a in self.atlases},
             "warnings": list(self.warnings),
             **({"auto": self.auto.as_dict()} if self.auto is not None else {}),
+            **({"portals": dict(self.portals)} if self.portals else {}),
         }
 
 

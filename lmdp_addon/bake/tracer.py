@@ -207,6 +207,12 @@ class IndirectTracer:
         #: vertex samples the world with a shadow ray (``world.py``); None: the uniform world.
         self.environment = scene.environment if getattr(scene, "environment", None) is not None \
             and scene.environment.lit else None
+        #: World portals (``portals``): the map's light drawn by a probe's block probabilities,
+        #: per region (``world_regions``: each triangle's row, None: one row for all).
+        self.portals = None
+        self.world_regions = None
+        #: A :class:`~lmdp_addon.bake.portals.PortalProbe` that records the world samples (or None).
+        self.world_probe = None
         #: Glossy surfaces (``SceneArrays.materials``): their vertices sample and evaluate the
         #: BSDF (``bsdf.VertexBSDF``); None: every surface is Lambertian (traced as before).
         self.glossy = scene.glossy_triangles() if scene.has_glossy() else None
@@ -231,6 +237,16 @@ class IndirectTracer:
         #: gather modes.
         self.splitting = splitting if (splitting is not None and self.clamp is None
                                        and mode in ("UNGUIDED", "GUIDED")) else None
+
+    def use_portals(self, portals):
+        """Draw the environment map's light samples by the :class:`~lmdp_addon.bake.portals.Portals`
+        ``portals`` from now on (None, or no environment map: the map's own sampling)."""
+        if self.environment is None:
+            return
+        env = self.scene.environment
+        self.portals = portals
+        self.environment = env if portals is None else portals.sampler(env)
+        self.world_regions = None if portals is None else portals.regions(self.scene)
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None, control_out=None,
@@ -281,8 +297,11 @@ class IndirectTracer:
         beta = np.ones((n, 3), np.float32)
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
+        reg = None     # the world portals' region of each path's current vertex
+        if self.world_regions is not None:
+            reg = np.zeros(n, np.int64) if triangles is None else np.take(self.world_regions, triangles)
         if self.content.direct:   # ---- direct light at x0: NEE here, MIS hits of ω0 below ----
-            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats)
+            samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, regions=reg)
             self._add_light_samples(L, idx, None, samples, _summed(samples), 0, rho0, stats)
         if rho0 is not None and self.guide is not None:   # ω0's weight: from here on in Cycles' terms
             _to_cycles(rho0, idx, _cosine_ratio(w))
@@ -298,8 +317,8 @@ class IndirectTracer:
             joins = connections.JoinState(n, self.light_share, self.lights)
             connections.connect(self, L, lv, idx, pos, nrm, gnrm, lift, None, states, True, 0, stats)
             joins.joined[idx] = True
-        idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
-                                                                       gnrm, lift, d, w, cos_prev, beta)
+        idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta, reg = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
+                                                                            gnrm, lift, d, w, cos_prev, beta, reg)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
         p_min = (np.maximum(cos_prev, 0.0) * INV_PI).astype(np.float32) if self.filter_glossy > 0 else None
         n_glossy = np.zeros(len(idx), np.int16) if self.glossy is not None else None   # glossy bounces
@@ -323,7 +342,7 @@ class IndirectTracer:
                 joins.arrive(self, idx, h, d, w, cos_prev, tri, dist)
             if bounce >= 2 or self.content.direct:
                 self._light_found(L, idx, beta * w[:, None], origin, d, tri, dist, cos_prev, h, q_prev,
-                                  bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook)
+                                  bounce=bounce, rho0=rho0, stats=stats, mis_hook=hook, regions=reg)
                 if self.lamp_hits:   # lamps the rays cross before their hit (they go on through)
                     self._lamps_found(L, idx, beta * w[:, None], origin, nrm, d, tri, dist, cos_prev, q_prev,
                                       bounce=bounce, rho0=rho0, stats=stats)
@@ -354,19 +373,20 @@ class IndirectTracer:
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
             objs = np.take(self.objects, tri)
+            reg = None if self.world_regions is None else np.take(self.world_regions, tri)
             z_ind = None
             if bounce == 1 and control_out is not None:    # RESIDUAL: ẑ_ind(y_1) of g
                 z_ind = self.control.indirect_at(tri, bu, bv, pos, gnrm, front, objs, dist)
             if bounce == 1 and self.gather is not None:
                 live = self._final_gather(L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs,
-                                          rng, stats, rho0)
-                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
-                    live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
+                                          rng, stats, rho0, reg)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi, reg = _select_rows(
+                    live, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi, reg)
                 p_min, n_glossy = _take(p_min, live), _take(n_glossy, live)
             alive = _channel_max(beta) > 0
             if not np.all(alive):
-                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi = _select_rows(
-                    np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi)
+                idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi, reg = _select_rows(
+                    np.flatnonzero(alive), idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, front, objs, wi, reg)
                 p_min, n_glossy = _take(p_min, np.flatnonzero(alive)), _take(n_glossy, np.flatnonzero(alive))
                 z_ind = z_ind[alive] if z_ind is not None else None
             if len(idx) == 0:
@@ -379,8 +399,12 @@ class IndirectTracer:
             elif paths is not None:   # the window's own lookup (the guide's states serve GUIDED)
                 vstates = self.splitting.states_at_hits(tri, bu, bv, pos, gnrm, front, objs)
             # ---- next-event estimation at y_bounce ----
+            record = None
+            if self.world_probe is not None:     # a portal probe: its world samples, weighed by β
+                record = self.world_probe.recorder(tri, beta @ LUMINANCE32)
             samples = self._light_samples(pos, nrm, gnrm, lift, rng, stats, glossy_rows,
-                                          hook=None if joins is None else joins.hook(idx))
+                                          hook=None if joins is None else joins.hook(idx), regions=reg,
+                                          record=record)
             direct = _summed(samples)
             self._add_light_samples(L, idx, beta, samples, direct, bounce, rho0, stats)
             if joins is not None:    # light vertices joined to y_bounce (a vertex bounce + 1)
@@ -398,7 +422,7 @@ class IndirectTracer:
             if paths is not None:
                 L, rr = paths.window(self, L, idx, beta, vstates, bounce, rng, joins, lv)
                 idx, beta, keep = rr       # rows: increasing, repeated for the copies
-                pos, nrm, gnrm, lift, vstates = _taken_rows(keep, pos, nrm, gnrm, lift, vstates)
+                pos, nrm, gnrm, lift, vstates, reg = _taken_rows(keep, pos, nrm, gnrm, lift, vstates, reg)
                 p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
                 if glossy_rows is not None:
                     glossy_rows = glossy_rows.select(keep)
@@ -408,7 +432,8 @@ class IndirectTracer:
                 q = np.minimum(_channel_max(beta), 1.0)
                 survive = np.flatnonzero(rng.random(len(idx), dtype=np.float32) < q)
                 beta = rows(beta, survive) / q[survive, None]
-                idx, pos, nrm, gnrm, lift, vstates = _select_rows(survive, idx, pos, nrm, gnrm, lift, vstates)
+                idx, pos, nrm, gnrm, lift, vstates, reg = _select_rows(survive, idx, pos, nrm, gnrm, lift, vstates,
+                                                                       reg)
                 p_min, n_glossy = _take(p_min, survive), _take(n_glossy, survive)
                 if glossy_rows is not None:
                     glossy_rows = glossy_rows.select(survive)
@@ -440,8 +465,8 @@ class IndirectTracer:
             keep = w > 0
             if not np.all(keep):
                 keep = np.flatnonzero(keep)
-                idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta = _select_rows(
-                    keep, idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta)
+                idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta, reg = _select_rows(
+                    keep, idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta, reg)
                 if q_prev is not None:
                     q_prev = np.take(q_prev, keep)
                 p_min, n_glossy = _take(p_min, keep), _take(n_glossy, keep)
@@ -476,13 +501,16 @@ class IndirectTracer:
             ok &= ~glossy_rows.mask
         return ok
 
-    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, hook=None):
+    def _light_samples(self, pos, nrm, gnrm, lift, rng, stats, glossy_rows=None, hook=None, regions=None,
+                       record=None):
         """The light-sampling half of the direct light D(y) at the points ``pos`` (shading
         normals ``nrm``, geometric ``gnrm``, ray offsets ``lift``), one (k, 3) estimate per light
         kind: the emitters' MIS estimate (``lights``), Blender's lights (``lamps``; MIS-weighted
         where rays hit them) and the environment map's MIS estimate (``world``), in that order of
         random numbers (D(y) is their sum, :func:`_summed`); rows of ``glossy_rows``
-        (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density."""
+        (:class:`~lmdp_addon.bsdf.GlossyRows`) shade with their BSDF's f cos and density;
+        ``regions`` (k,): the world portals' region of each point (None: one for all),
+        ``record``: a portal probe's recorder of the world samples (``world.next_event``)."""
         geometric = gnrm if self.smooth else None
         direct, shadow_rays = self.lights.next_event(pos, nrm, rng, self.caster, lift=lift, geometric=geometric,
                                                      bsdf=glossy_rows, mis_hook=hook)
@@ -497,7 +525,7 @@ class IndirectTracer:
         if self.environment is not None:
             world_direct, shadow_rays = world_light.next_event(self.environment, pos, nrm, rng, self.caster, lift,
                                                                geometric=geometric, transparency=self.transparency,
-                                                               bsdf=glossy_rows)
+                                                               bsdf=glossy_rows, regions=regions, record=record)
             stats.shadow_rays += shadow_rays
             samples.append(world_direct)
         return samples
@@ -596,18 +624,20 @@ class IndirectTracer:
         return pos, nrm, gnrm, front, albedo
 
     def _light_found(self, L, idx, bw, origin, d, tri, dist, cos_prev, h, q_prev=None, bounce=2, rho0=None,
-                     stats=None, mis_hook=None):
+                     stats=None, mis_hook=None, regions=None):
         """Adds to ``L`` the light found by the directions sampled at y_{k-1} (k = ``bounce`` >= 2,
         or 1 with the direct light of ``content``): the world through the rays that escape, the
         emitters through the rays ``h`` that hit geometry (the sampled-ray half of the MIS
         estimate); ``bw = β w`` of the rays; ``q_prev``: the BSDF density of rays sampled at glossy
-        vertices (NaN elsewhere), or None. Contributions of bounce k - 1 (:meth:`_add`)."""
+        vertices (NaN elsewhere), or None; ``regions``: the world portals' region of the vertices
+        the rays left (None: one for all). Contributions of bounce k - 1 (:meth:`_add`)."""
         stats = stats if stats is not None else TraceStats()
         if self.environment is not None and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
             self._add(L, idx[miss], rows(bw, miss) * world_light.escape_weight(
                 self.environment, rows(d, miss), np.take(cos_prev, miss),
-                pdf_from=None if q_prev is None else np.take(q_prev, miss)), bounce - 1, rho0, stats)
+                pdf_from=None if q_prev is None else np.take(q_prev, miss),
+                regions=None if regions is None else np.take(regions, miss)), bounce - 1, rho0, stats)
         elif self.world_lit and len(h) < len(idx):
             miss = np.flatnonzero(tri == -1)   # not the rays absorbed by transparency
             self._add(L, idx[miss], rows(bw, miss) * self.world, bounce - 1, rho0, stats)
@@ -628,7 +658,7 @@ class IndirectTracer:
         self._add(L, idx[lit], rows(bw, lit) * value, bounce - 1, rho0, stats)
 
     def _final_gather(self, L, idx, pos, nrm, gnrm, lift, beta, tri, bu, bv, dist, front, objs, rng, stats,
-                      rho0=None):
+                      rho0=None, regions=None):
         """FINAL_GATHER at y_1: the radiance leaving it, ρ (ẑ_ind + D_e), with the direct part by
         light sampling at y_1 itself (``gather.build_gather``), ends the paths the gather serves;
         returns the rows of the others (no state near, back faces, hits too close), which go on.
@@ -648,7 +678,8 @@ class IndirectTracer:
         if self.environment is not None:   # the world's direct light at y_1 (ẑ then leaves it out)
             world_direct, shadow_rays = world_light.next_event(
                 self.environment, rows(pos, g), rows(nrm, g), rng, self.caster, np.take(lift, g),
-                geometric=rows(gnrm, g) if self.smooth else None, mis=False, transparency=self.transparency)
+                geometric=rows(gnrm, g) if self.smooth else None, mis=False, transparency=self.transparency,
+                regions=None if regions is None else np.take(regions, g))
             stats.shadow_rays += shadow_rays
             direct = direct + world_direct
             samples.append(world_direct)

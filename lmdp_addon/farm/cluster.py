@@ -160,9 +160,10 @@ class Farm:
 
     # ---- the engine's seams (driver.bake, dynamics.build_passive_dynamics) ----------------------
 
-    def bake_units(self, scene, settings, lmdp):
-        """A runner of one bake's work units (``units.BakeUnits``, a context manager)."""
-        return units.BakeUnits(self, scene, settings, lmdp)
+    def bake_units(self, scene, settings, lmdp, portals=None):
+        """A runner of one bake's work units (``units.BakeUnits``, a context manager); ``portals``:
+        the world portals the bake's tracer follows (``bake.portals.Portals``, or None)."""
+        return units.BakeUnits(self, scene, settings, lmdp, portals)
 
     def build_batches(self, scene, states, rays_per_stratum, seed, exact_nearest, light_samples,
                       points_per_batch):

@@ -114,8 +114,8 @@ class _Runner:
 class BakeUnits(_Runner):
     """``runner(job, unit_ids)``: ``driver.trace_unit`` of each unit on the workers."""
 
-    def __init__(self, farm, scene, settings, lmdp):
-        super().__init__(farm, worker.BakeRecipe(scene, settings, _without_caster(lmdp), farm.engine))
+    def __init__(self, farm, scene, settings, lmdp, portals=None):
+        super().__init__(farm, worker.BakeRecipe(scene, settings, _without_caster(lmdp), farm.engine, portals))
 
     def __call__(self, job, unit_ids):
         client = self.farm.client

@@ -38,17 +38,19 @@ class BakeRecipe:
     lmdp      the solved stages (``scene``, ``states``, ``dynamics`` without its ray caster,
               ``lmdp``, ``solution``), or None (UNGUIDED)
     engine    the client's ``versions.probe()`` the worker must match
+    portals   the world portals of the client's tracer (``bake.portals.Portals``), or None
     """
 
     scene: object
     settings: object
     lmdp: object = None
     engine: dict = None
+    portals: object = None
 
     def set_up(self):
         from ..bake.driver import make_tracer
         with self.scene.held():
-            return make_tracer(self.scene, self.settings, self.lmdp)[0]
+            return make_tracer(self.scene, self.settings, self.lmdp, portals=self.portals)[0]
 
 
 @dataclass

@@ -347,6 +347,9 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row = layout.row()
         row.active = props.bake_mode in ('AUTO', 'GUIDED')   # the solution's roulette and splitting
         row.prop(props, "splitting")
+        row = layout.row()
+        row.active = context.scene.world is not None   # an environment map lights the scene
+        row.prop(props, "world_portals")
         layout.prop(props, "light_paths")
         column = layout.column(align=True)
         column.active = props.light_paths == 'CUSTOM'   # SCENE: the scene's Cycles Light Paths decide

@@ -97,6 +97,18 @@ def test_a_clamped_farm_bake_is_byte_identical_to_the_local_bake(cornell, solved
     assert_same_bake(local, farm_api.bake(cornell, NAMES, settings, lmdp=solved, farm=farm))
 
 
+def test_a_farm_bake_under_an_hdri_draws_the_local_probes_portals(farm, many_units):
+    """The world portals are learned once, by the client's probe, and sent with the recipe."""
+    from test_portals import open_box_under_a_sun
+    scene = open_box_under_a_sun()
+    settings = small(bake_mode="UNGUIDED", bake_resolution=16)
+    local = driver.bake(scene, ["Floor", "BackWall"], settings)
+    assert local.portals["used"]
+    remote = farm_api.bake(scene, ["Floor", "BackWall"], settings, farm=farm)
+    assert remote.portals == local.portals
+    assert_same_bake(local, remote)
+
+
 def test_farm_build_is_byte_identical_to_the_local_build(cornell, farm, monkeypatch):
     monkeypatch.setattr(dynamics_module, "RAYS_PER_BATCH", 1 << 12)   # several batches (client side)
     settings = small()
