@@ -1,16 +1,17 @@
 """AUTO, the default bake mode: unguided paths where they are quiet, the solved LMDP where it wins.
 
 A bake of S samples per texel (S >= :data:`MIN_SAMPLES`; fewer: UNGUIDED) first measures, on
-about :data:`PILOT_TEXELS` of its texels (every k-th), about :data:`PILOT_PATHS` paths
-(:func:`pilot_samples`), on random streams of their own (seed ``PILOT_STREAMS · seed + k``).
+every k-th of its texels, :func:`pilot_paths` paths (4096 to 8192, :func:`pilot_samples` per
+texel), on random streams of their own (seed ``PILOT_STREAMS · seed + k``).
 The pilots only decide; the bake itself is then an ordinary UNGUIDED or GUIDED bake of all S
 samples with the user's seed (the same bytes as that mode's bake), so the decision cannot bias it:
 
-1. *Unguided pilot*, with light connections: its relative variance per path,
-   ``Σ n se² / (texels · mean²)`` over the pilot's texels and channels, says how hard the
-   scene is for unguided paths (measured: Cornell box 2.4-3.6, heavy box 2.9-3.9, sun + HDRI
-   5-6.4, glossy box 8-16 per path; light through a hatch 76-126). Below :data:`MODERATE`:
-   UNGUIDED, no solve.
+1. *Unguided pilot*, with light connections: its relative variance per path (:func:`relative_variance`:
+   ``n se² / mean²`` of each pilot texel, the largest :data:`CLIPPED` of them clipped to the rest's
+   largest, averaged) says how hard the scene is for unguided paths (measured over 40 seeds at
+   4096 / 8192 pilot paths: Cornell box 2.4-3.2 / 2.6-3.0, heavy box 3.0-3.8 / 3.1-3.7, glossy box
+   2.5-3.7 / 2.5-3.3, sun + HDRI 5.0-6.3 / 5.3-6.1, light through a hatch 23-55 / 32-53). Below
+   :data:`MODERATE`: UNGUIDED, no solve.
 2. Noisy (at or above :data:`NOISY`), and the bake large enough that the LMDP's build costs at
    most :data:`SOLVE_SHARE` of its rays (:func:`worth_solving`), or a solution given: the LMDP is
    sampled, built and solved (or the given solution reused) and, below :data:`SURE`, a *guided
@@ -36,8 +37,15 @@ import numpy as np
 
 #: Random streams of the pilots: pilot k uses seed ``PILOT_STREAMS * seed + k`` (k = 1, 2).
 PILOT_STREAMS = 4
-#: Paths of a pilot ...
+#: Paths of a pilot: 1/:data:`PILOT_SHARE` of the bake's, at least :data:`PILOT_MIN_PATHS` and at
+#: most :data:`PILOT_PATHS` (:func:`pilot_paths`: a 16-sample bake at 128² pilots 4096 paths, 64
+#: samples 8192; a pilot's paths cost about twice a bake's, one thread on small arrays, so at 8192 it
+#: was 10-16 % of a 16-sample bake of the glossy box and the sun + HDRI scene; relative variance
+#: per path over 12 seeds at 4096 / 8192 paths: narrow opening 53-121 / 74-103, Cornell 2.7-3.7 /
+#: 3.0-3.7, sun + HDRI 5.9-7.7 / 5.9-6.6) ...
 PILOT_PATHS = 8192
+PILOT_MIN_PATHS = 4096
+PILOT_SHARE = 64
 #: ... its fewest samples per texel (batches: each texel's standard error) ...
 PILOT_SAMPLES = 4
 #: ... and its texels (all baked objects together; every k-th texel of each): where the bake has
@@ -46,16 +54,21 @@ PILOT_SAMPLES = 4
 PILOT_TEXELS = PILOT_PATHS // PILOT_SAMPLES
 #: Fewest samples per texel of a bake that runs pilots (below, UNGUIDED).
 MIN_SAMPLES = 16
+#: Share of the pilot's texels whose relative variance is clipped (:func:`relative_variance`): the
+#: mean over all texels was carried by a few spiky ones where guiding cannot help (the glossy box's
+#: highlights: 3.6-37 over 40 seeds at 8192 paths, 3 of them above :data:`NOISY`'s former 25, where
+#: the clipped mean read 2.5-3.3), while a hatch keeps a large clipped mean (32-53, the mean 69-225).
+CLIPPED = 0.01
 #: Relative variance per path of the unguided pilot from which a bake large enough for
 #: :data:`MODERATE_SOLVE_SHARE` solves the LMDP and pilots GUIDED without splitting (the quiet
-#: Cornell and heavy boxes measured 2.4-3.9, where GUIDED gained nothing over UNGUIDED with light
-#: connections; the sun + HDRI scene 5-6.4, the glossy box 8-16) ...
-MODERATE = 5.0
+#: Cornell, heavy and glossy boxes measured up to 3.8, where GUIDED gained nothing over UNGUIDED with
+#: light connections; the sun + HDRI scene 5.0-6.3) ...
+MODERATE = 4.5
 #: ... from which the LMDP is solved and GUIDED piloted with splitting ...
-NOISY = 25.0
-#: ... and at or above which GUIDED bakes without a guided pilot (measured: where unguided paths
-#: were this noisy, light through a hatch at 76-126, GUIDED won every guided pilot, 1.25-3.5x).
-SURE = 50.0
+NOISY = 12.0
+#: ... and at or above which GUIDED bakes without a guided pilot (light through a hatch, 23-55: GUIDED
+#: won every guided pilot there, 1.25-3.5x).
+SURE = 20.0
 #: Time of a GUIDED ray over an UNGUIDED one, both with light connections (the guide's lookups
 #: and mixture densities; measured on the narrow opening at 64 and 256 samples: 1.46x the time per
 #: path for 1.13x the rays).
@@ -73,11 +86,17 @@ MODERATE_SOLVE_SHARE = 0.02
 MODERATE_GAIN = 1.1
 
 
-def pilot_samples(pilot_texels, samples):
+def pilot_paths(bake_paths):
+    """Paths of the pilots of a bake of ``bake_paths`` paths (texels x samples): a
+    :data:`PILOT_SHARE`-th of them, from :data:`PILOT_MIN_PATHS` to :data:`PILOT_PATHS`."""
+    return int(min(PILOT_PATHS, max(PILOT_MIN_PATHS, int(bake_paths) // PILOT_SHARE)))
+
+
+def pilot_samples(pilot_texels, samples, paths=PILOT_PATHS):
     """Samples per texel of the pilots at ``pilot_texels`` texels of a bake of ``samples``:
-    :data:`PILOT_PATHS` paths, at least :data:`PILOT_SAMPLES`, at most a quarter of the bake's,
-    a multiple of 4 (four batches)."""
-    want = -(-PILOT_PATHS // max(int(pilot_texels), 1))
+    ``paths`` paths, at least :data:`PILOT_SAMPLES`, at most a quarter of the bake's, a
+    multiple of 4 (four batches)."""
+    want = -(-int(paths) // max(int(pilot_texels), 1))
     n = max(PILOT_SAMPLES, min(want, int(samples) // 4))
     return -(-n // 4) * 4
 
@@ -125,24 +144,40 @@ class AutoChoice:
                     sure=self.sure, moderate=self.moderate, no_solution=self.no_solution)
 
 
-def relative_variance(objects):
-    """Relative variance per path of a pilot (its ``ObjectBake`` s): Σ n se² / (texels · mean²)
-    over their texels and channels (0 for a black or empty pilot)."""
-    var = [np.square(ob.standard_error.astype(np.float64)) * ob.samples for ob in objects
+def _texel_variances(objects):
+    """(texels,) n se² of every texel of a pilot (its ``ObjectBake`` s), averaged over the
+    channels: the variance per path of each texel's estimate."""
+    var = [(np.square(ob.standard_error.astype(np.float64)) * ob.samples).mean(axis=1) for ob in objects
            if ob.n_texels and np.all(np.isfinite(ob.standard_error))]
+    return np.concatenate(var) if var else np.zeros(0)
+
+
+def _clipped_mean(values):
+    """The mean of ``values`` with the largest :data:`CLIPPED` of them set to the largest of the
+    rest (a winsorised mean)."""
+    if len(values) == 0:
+        return 0.0
+    return float(np.mean(np.minimum(values, np.quantile(values, 1.0 - CLIPPED))))
+
+
+def relative_variance(objects):
+    """Relative variance per path of a pilot (its ``ObjectBake`` s): the clipped mean
+    (:data:`CLIPPED`) over their texels of ``n se² / mean²``, the mean over all texels and
+    channels (0 for a black or empty pilot)."""
+    var = _texel_variances(objects)
     val = [ob.value.astype(np.float64) for ob in objects if ob.n_texels]
-    if not var or not val:
+    if len(var) == 0 or not val:
         return 0.0
     mean = np.mean(np.concatenate(val))
-    return float(np.mean(np.concatenate(var)) / mean ** 2) if mean > 0 else 0.0
+    return float(_clipped_mean(var) / mean ** 2) if mean > 0 else 0.0
 
 
 def efficiency(objects, ray_cost=1.0):
     """1 / (variance per path x cost per path) of a pilot (its ``ObjectBake`` s), the variance
-    averaged over their texels and channels, the cost their rays per path times ``ray_cost`` (a
-    count, not a clock: the choice, and so the bake, is the same for a seed on any machine)."""
-    var = np.mean(np.concatenate([np.square(ob.standard_error.astype(np.float64)) * ob.samples
-                                  for ob in objects if ob.n_texels]))
+    the clipped mean over their texels (as :func:`relative_variance`), the cost their rays per
+    path times ``ray_cost`` (a count, not a clock: the choice, and so the bake, is the same for a
+    seed on any machine)."""
+    var = _clipped_mean(_texel_variances(objects))
     paths = sum(ob.n_texels * ob.samples for ob in objects)
     rays = sum(ob.stats.total_rays for ob in objects)
     return 1.0 / max(var * ray_cost * rays / max(paths, 1), 1e-300)

@@ -126,12 +126,13 @@ def work_units(n_texels, batches, per_batch, min_units=MIN_UNITS):
 # ---- the bake of one object -------------------------------------------------------------------------
 
 def bake_object(tracer, scene, name, settings, object_number=0, guide=None, progress=None,
-                threads=None, texels=None, resolution=None, runner=None, min_units=MIN_UNITS):
+                threads=None, texels=None, resolution=None, runner=None, min_units=MIN_UNITS, image=True):
     """Bake one object's lightmap with ``tracer``; returns :class:`ObjectBake`. ``resolution``:
     its lightmap side R (default ``settings.bake_resolution``; ``BakePlan.resolution_of``);
     ``texels``: its ``(TexelSet, triangles)`` at R if the caller has them (``BakePlan.texels``),
     else they are rasterised here. ``threads``: default :func:`bake_threads`. ``runner``: a
-    farm's unit runner (``Farm.bake_units``), None: local threads."""
+    farm's unit runner (``Farm.bake_units``), None: local threads. ``image=False``: the texels'
+    values and standard errors only (a pilot or probe), its ``image`` None."""
     t0 = time.perf_counter()
     progress = progress if progress is not None else Progress()
     index = object_index(scene, name)
@@ -153,7 +154,7 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
     value, stderr = _batch_statistics(acc, acc2, B)
     del acc, acc2
     return ObjectBake(name=name, texels=ts, triangles=tris, value=value, standard_error=stderr,
-                      image=object_image(ts, value, R, settings.bake_margin),
+                      image=object_image(ts, value, R, settings.bake_margin) if image else None,
                       samples=N, batches=B, stats=stats, seconds=time.perf_counter() - t0)
 
 
@@ -397,8 +398,11 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
     portals = None
     if S >= auto.MIN_SAMPLES:
         targets = [_auto_texels(scene, plan, settings, name) for name in names]
+        paths = auto.pilot_paths(sum(t[4] for t in targets) * S)
+        if paths < auto.PILOT_PATHS:       # a small bake: a smaller pilot
+            targets = [_auto_texels(scene, plan, settings, name, paths // auto.PILOT_SAMPLES) for name in names]
         unguided[0].world_probe = probe           # the unguided pilot is the portals' probe too
-        first = _auto_pilot(scene, targets, unguided_settings, unguided, 1, progress, threads)
+        first = _auto_pilot(scene, targets, unguided_settings, unguided, 1, progress, threads, paths)
         unguided[0].world_probe = None
         choice.relative_variance = auto.relative_variance(first)
         per_path = sum(ob.stats.total_rays for ob in first) / max(sum(ob.n_texels * ob.samples for ob in first), 1)
@@ -420,7 +424,7 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
             choice.solved, choice.moderate = True, moderate
             choice.sure = choice.relative_variance >= auto.SURE
             if not choice.sure:
-                second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress, threads)
+                second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress, threads, paths)
                 choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
             if choice.sure or choice.guided_gain > (auto.MODERATE_GAIN if moderate else 1.0):
                 mode, made, main_settings, used = "GUIDED", guided, guided_settings, lmdp
@@ -456,20 +460,20 @@ def _auto_texels(scene, plan, settings, name, count=auto.PILOT_TEXELS):
     return number, name, (ts.subset(slice(0, None, stride)), tris), R, len(ts)
 
 
-def _auto_pilot(scene, targets, settings, made, part, progress, threads=None):
-    """The ObjectBakes of an AUTO pilot: ``auto.pilot_samples`` samples at the ``targets``
-    texels (:func:`_auto_texels`) with the tracer ``made``, in one work unit per object (a
-    pilot's arrays are too small for a second thread to gain: it waits on the first's Python),
-    on random streams of their own (seed ``PILOT_STREAMS · seed + part``): measurements only,
-    never part of the lightmaps."""
+def _auto_pilot(scene, targets, settings, made, part, progress, threads=None, paths=auto.PILOT_PATHS):
+    """The ObjectBakes of an AUTO pilot of about ``paths`` paths: ``auto.pilot_samples`` samples
+    at the ``targets`` texels (:func:`_auto_texels`) with the tracer ``made``, in one work unit
+    per object (a pilot's arrays are too small for a second thread to gain: it waits on the
+    first's Python), on random streams of their own (seed ``PILOT_STREAMS · seed + part``):
+    measurements only, never part of the lightmaps (no image)."""
     tracer, guide, _ = made
-    n = auto.pilot_samples(sum(len(t[2][0]) for t in targets), settings.bake_samples)
+    n = auto.pilot_samples(sum(len(t[2][0]) for t in targets), settings.bake_samples, paths)
     s = replace(settings, bake_samples=n, seed=auto.PILOT_STREAMS * int(settings.seed) + part)
     out = []
     for number, name, texels, R, _ in targets:
         progress.begin(f"AUTO pilot ({settings.bake_mode}) {name}")
         out.append(bake_object(tracer, scene, name, s, object_number=number, guide=guide, progress=progress,
-                               threads=threads, texels=texels, resolution=R, min_units=1))
+                               threads=threads, texels=texels, resolution=R, min_units=1, image=False))
         progress.end(f"{out[-1].n_texels} texels")
     return out
 
@@ -497,7 +501,7 @@ def _run_portal_probe(scene, plan, settings, names, tracer, probe, progress, thr
     progress.begin("world portals: probe")
     for number, name, texels, R, _ in [_auto_texels(scene, plan, settings, n, count) for n in names]:
         bake_object(probe_tracer, scene, name, probe_settings, object_number=number, progress=progress,
-                    threads=threads, texels=texels, resolution=R, min_units=1)
+                    threads=threads, texels=texels, resolution=R, min_units=1, image=False)
     portals = world_portals.learn(probe)
     progress.end(_portals_sentence(portals, probe))
     return portals
