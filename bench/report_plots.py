@@ -9,9 +9,13 @@ FAMILY_STYLE = {
     "GUIDED": dict(marker="^", linestyle="-"),
     "FINAL_GATHER": dict(marker="D", linestyle="--"),
     "RESIDUAL": dict(color="tab:olive", marker="v", linestyle="-."),
+    "AUTO": dict(color="magenta", marker="*", linestyle="-", linewidth=2.0),   # the default: drawn to stand out
 }
 GUIDED_COLOURS = ["tab:orange", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive"]
 GATHER_COLOURS = ["tab:green", "tab:cyan", "tab:gray"]
+#: Plain path tracing and its variants (light connections, world portals): blues, one line style each.
+UNGUIDED_STYLES = [dict(color="tab:blue", linestyle="-"), dict(color="deepskyblue", linestyle="--"),
+                   dict(color="navy", linestyle="-.")]
 
 
 def _plt():
@@ -23,9 +27,12 @@ def _plt():
 
 
 def _method_styles(methods):
-    styles, g, f = {}, 0, 0
+    styles, g, f, u = {}, 0, 0, 0
     for m in methods:
         style = dict(FAMILY_STYLE.get(m["family"], {}))
+        if m["family"] == "UNGUIDED":
+            style.update(UNGUIDED_STYLES[u % len(UNGUIDED_STYLES)])
+            u += 1
         if m["family"] == "Cycles" and m["name"] != "Cycles":      # Cycles with path guiding
             style.update(color="dimgray", linestyle=":")
         if m["family"] == "GUIDED":
@@ -48,7 +55,7 @@ def plot_speed_error(key, case, path):
             continue
         t = [p["seconds"] for p in pts]
         e = [max(p["rel_rmse"], 1e-4) for p in pts]
-        ax.plot(t, e, label=m["name"], markersize=4, linewidth=1.2, **styles[m["name"]])
+        ax.plot(t, e, label=m["name"], markersize=4, **{"linewidth": 1.2, **styles[m["name"]]})
         for p, ti, ei in zip(pts, t, e):
             ax.annotate(str(p["samples"]), (ti, ei), textcoords="offset points", xytext=(3, 3), fontsize=6,
                         color=styles[m["name"]].get("color", "black"))
@@ -59,7 +66,9 @@ def plot_speed_error(key, case, path):
     ax.set_yscale("log")
     ax.set_xlabel("wall time, s (median of repeats; LMDP precompute included)")
     ax.set_ylabel("relative RMSE vs reference (noise-corrected)")
-    ax.set_title(f"{case['title']} ({case['resolution']}x{case['resolution']}, {case['bounces']} bounces)")
+    import textwrap
+    title = f"{case['title']} ({case['resolution']}x{case['resolution']}, {case['bounces']} bounces)"
+    ax.set_title("\n".join(textwrap.wrap(title, 70)))     # long titles on two lines, not cut off
     ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
     fig.tight_layout()
