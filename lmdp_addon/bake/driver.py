@@ -509,7 +509,8 @@ def _run_portal_probe(scene, plan, settings, names, tracer, probe, progress, thr
 
 def _portals_sentence(portals, probe):
     if portals is None:
-        return f"{probe.samples} world samples, none saw the world: the map's own sampling"
+        return (f"{probe.samples} world samples, {probe.visible} saw the world (fewer than "
+                f"{world_portals.MIN_VISIBLE}): the map's own sampling")
     return (f"{probe.samples} world samples, {100 * portals.info['probe_visible']:.0f} % saw the world; "
             f"{portals.info['regions']} region(s)")
 
@@ -519,7 +520,7 @@ def _portals_info(portals, probe):
     if probe is None:
         return {}
     return {"used": portals is not None, **(portals.info if portals is not None else
-                                            {"probe_samples": probe.samples})}
+                                            {"probe_samples": probe.samples, "probe_seen": probe.visible})}
 
 
 def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, plan, farm=None, made=None):

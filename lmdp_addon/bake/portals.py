@@ -50,6 +50,11 @@ DEFENSIVE = 0.2
 PRIOR = 8.0
 #: Fewest probe samples from one object for it to get block probabilities of its own.
 MIN_REGION_SAMPLES = 256
+#: Fewest probe samples that saw the world for any portals at all: a small window seen by 1 % of
+#: the map's samples left 20 of 2143 (a room lit by a constant map through a 0.3 m window), and
+#: the tables learned from them raised the variance per path from 72 to 86 (77 with 5288 samples,
+#: 71 with 10 824): too few to tell the window's blocks from the rest.
+MIN_VISIBLE = 256
 #: Paths of a probe (a bake that is not AUTO runs one; AUTO's unguided pilot is its probe):
 #: every k-th texel of the baked objects, :data:`PROBE_SAMPLES` samples each.
 PROBE_PATHS = 2048
@@ -153,11 +158,12 @@ class Portals:
 
 
 def learn(probe):
-    """:class:`Portals` of a :class:`PortalProbe` (eq. 1), or None when it saw no world light."""
+    """:class:`Portals` of a :class:`PortalProbe` (eq. 1), or None when fewer than
+    :data:`MIN_VISIBLE` of its samples saw the world."""
     env = probe.environment
     mass = np.bincount(probe.blocks, weights=env.pixel_prob, minlength=probe.n_blocks)
     S, N = probe.squares, probe.counts
-    if N[0].sum() == 0 or S[0].sum() <= 0:
+    if probe.visible < MIN_VISIBLE or S[0].sum() <= 0:
         return None
     overall = np.where(N[0] > 0, S[0] / np.maximum(N[0], 1), 0.0)
     enough = N[1:].sum(axis=1) >= MIN_REGION_SAMPLES

@@ -80,6 +80,17 @@ def test_learned_tables_keep_the_maps_share_of_every_block():
     assert learned.regions(scene)[0] == 1 and learned.info["probe_visible"] == 1.0
 
 
+def test_a_probe_that_saw_too_little_learns_nothing():
+    """Fewer than MIN_VISIBLE samples that saw the world: no portals (their tables would be noise)."""
+    scene = with_environment(patch_under_sky(), random_map(16, 32, seed=2))
+    n = portals.MIN_VISIBLE - 1
+    d = np.tile([[1.0, 0.0, 0.0]], (n, 1))
+    assert portals.learn(probe_of(scene, np.arange(n), np.ones(n), d, np.zeros(n, int))) is None
+    n += 1
+    assert portals.learn(probe_of(scene, np.arange(n), np.ones(n), np.tile([[1.0, 0.0, 0.0]], (n, 1)),
+                                  np.zeros(n, int))) is not None
+
+
 def test_a_probe_that_saw_nothing_learns_nothing():
     scene = with_environment(patch_under_sky(), random_map(16, 32, seed=2))
     probe = probe_of(scene, np.arange(10), np.zeros(10), np.tile([[0.0, 0.0, 1.0]], (10, 1)), np.zeros(10, int))
@@ -181,8 +192,11 @@ def test_auto_learns_its_portals_from_its_unguided_pilot(monkeypatch):
     piloted = driver.bake(scene, ["Floor"], small(bake_mode="AUTO", bake_resolution=16, bake_samples=16))
     assert piloted.portals["used"] and calls == []
     assert piloted.portals["probe_samples"] > 1000
-    small_bake = driver.bake(scene, ["Floor"], small(bake_mode="AUTO", bake_resolution=16, bake_samples=4))
+    small_bake = driver.bake(scene, ["Floor"], small(bake_mode="AUTO", bake_resolution=48, bake_samples=4))
     assert small_bake.portals["used"] and calls == [1]
+    tiny = driver.bake(scene, ["Floor"], small(bake_mode="AUTO", bake_resolution=8, bake_samples=4))
+    assert calls == [1, 1] and not tiny.portals["used"]      # 256 paths: too few saw the world
+    assert 0 < tiny.portals["probe_seen"] < portals.MIN_VISIBLE
 
 
 def test_no_environment_map_no_probe():
