@@ -395,7 +395,6 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
     choice = auto.AutoChoice(relative_variance=float("nan"))
     mode, made, main_settings, used = "UNGUIDED", unguided, unguided_settings, None
     probe = _portal_probe(unguided[0], settings)
-    portals = None
     if S >= auto.MIN_SAMPLES:
         targets = [_auto_texels(scene, plan, settings, name) for name in names]
         paths = auto.pilot_paths(sum(t[4] for t in targets) * S)
@@ -428,12 +427,12 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
                 choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)
             if choice.sure or choice.guided_gain > (auto.MODERATE_GAIN if moderate else 1.0):
                 mode, made, main_settings, used = "GUIDED", guided, guided_settings, lmdp
-    elif probe is not None:                       # too few samples for pilots: a probe of its own
-        portals = _run_portal_probe(scene, plan, settings, names, unguided[0], probe, progress, threads)
-    if probe is not None and portals is None and S >= auto.MIN_SAMPLES:
-        portals = world_portals.learn(probe)
-    # Both pilots drew the map's own world samples, so that they compare the two modes alike;
-    # the bake draws them through the portals the unguided pilot found.
+    # The world portals: learned by the unguided pilot (both pilots drew the map's own world
+    # samples, so that they compare the two modes alike), or without pilots by a probe.
+    portals = None
+    if probe is not None:
+        portals = (world_portals.learn(probe) if S >= auto.MIN_SAMPLES
+                   else _run_portal_probe(scene, plan, settings, names, unguided[0], probe, progress, threads))
     made[0].use_portals(portals)
     choice.mode = mode
     choice.samples = ((mode, S),)

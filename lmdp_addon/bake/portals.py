@@ -2,8 +2,8 @@
 
 Under an HDRI every path vertex y samples the world by the map's radiance (``world``: a pixel
 with probability ∝ L sin θ, a shadow ray to infinity). Inside a room lit through its openings
-most of those directions end on a wall (the sun + HDRI bench scene: 18.5 % of them reach the
-sky), so the world's light at y is a rare success times a large weight. The openings are where
+most of those directions end on a wall, so the world's light at y is a rare success times a
+large weight (docs/design.md, "World portals", has the measurements). The openings are where
 the world is seen from; this module learns them and samples the map there (issue 20, "openings
 as portals"), with no geometry given by the user:
 
