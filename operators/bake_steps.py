@@ -283,6 +283,8 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
     if result.portals.get("used"):
         message += (f"; world portals ({100 * result.portals['probe_visible']:.0f} % of the probe's world samples "
                     f"saw the world, {result.portals['regions']} region(s))")
+    elif result.portals.get("off"):
+        message += f"; {result.portals['off']}"
     if any(ob.stats.light_vertices for ob in result.objects):
         message += f"; light connections (share {settings.light_share:g})"
     elif baked.connections_off:

@@ -440,7 +440,7 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
     result = _bake(scene, names, main_settings, used, progress, None, threads, plan, farm, made=made)
     result.seconds = {**seconds, **result.seconds, "bake": time.perf_counter() - t0}
     result.mode, result.settings, result.auto = "AUTO", settings.as_dict(), choice
-    result.portals = _portals_info(portals, probe)
+    result.portals = _portals_info(portals, probe, made[0], settings)
     return result
 
 
@@ -479,10 +479,16 @@ def _auto_pilot(scene, targets, settings, made, part, progress, threads=None, pa
 
 # ---- world portals ---------------------------------------------------------------------------------
 
+#: Why a bake whose settings ask for world portals draws the map's own world samples.
+PORTALS_CLAMPED = ("world portals off: a sample clamp is on (Cycles clamps the values of its own world "
+                   "samples; Clamp Direct / Indirect 0 turns them on)")
+
+
 def _portal_probe(tracer, settings):
     """A :class:`portals.PortalProbe` for a bake with ``tracer`` when ``settings.world_portals`` is
-    on and the scene has an environment map that lights it, else None."""
-    if not getattr(settings, "world_portals", False) or tracer.environment is None:
+    on, the scene has an environment map that lights it and no sample clamp is on (the clamped
+    light samples must be distributed as Cycles', as for light connections), else None."""
+    if not getattr(settings, "world_portals", False) or tracer.environment is None or tracer.clamp is not None:
         return None
     return world_portals.PortalProbe(tracer.scene)
 
@@ -514,10 +520,12 @@ def _portals_sentence(portals, probe):
             f"{portals.info['regions']} region(s)")
 
 
-def _portals_info(portals, probe):
-    """``BakeResult.portals``: what the probe learned (empty without one)."""
+def _portals_info(portals, probe, tracer, settings):
+    """``BakeResult.portals``: what the probe learned, or why there was none although
+    ``settings`` asked for portals under an environment map (empty otherwise)."""
     if probe is None:
-        return {}
+        asked = getattr(settings, "world_portals", False) and tracer.environment is not None
+        return {"used": False, "off": PORTALS_CLAMPED} if asked and tracer.clamp is not None else {}
     return {"used": portals is not None, **(portals.info if portals is not None else
                                             {"probe_samples": probe.samples, "probe_seen": probe.visible})}
 
@@ -555,7 +563,8 @@ def _bake(scene, names, settings, lmdp, progress, precompute_seconds, threads, p
     seconds["bake"] = time.perf_counter() - t0
     return BakeResult(mode=settings.bake_mode, objects=objects, settings=settings.as_dict(),
                       seconds=seconds, warnings=list(plan.warnings) + list(plan.texel_warnings),
-                      guide_info=info, atlases=atlases, portals=_portals_info(tracer.portals, probe))
+                      guide_info=info, atlases=atlases,
+                      portals=_portals_info(tracer.portals, probe, tracer, settings) if made is None else {})
 
 
 def compose_atlas(name, objects, margin):

@@ -199,6 +199,18 @@ def test_auto_learns_its_portals_from_its_unguided_pilot(monkeypatch):
     assert 0 < tiny.portals["probe_seen"] < portals.MIN_VISIBLE
 
 
+@pytest.mark.parametrize("mode", ["UNGUIDED", "AUTO"])
+def test_a_sample_clamp_turns_the_portals_off(mode):
+    """With Cycles' sample clamp the world samples keep the map's own density (the clamped values
+    must be distributed as Cycles'), byte for byte the bake without portals, and the result says why."""
+    scene = open_box_under_a_sun()
+    settings = small(bake_mode=mode, bake_resolution=16, bake_samples=16, clamp_indirect=10.0)
+    clamped = driver.bake(scene, ["Floor"], settings)
+    assert clamped.portals == {"used": False, "off": driver.PORTALS_CLAMPED}
+    plain = driver.bake(scene, ["Floor"], replace(settings, world_portals=False))
+    assert np.array_equal(clamped.objects[0].image, plain.objects[0].image) and plain.portals == {}
+
+
 def test_no_environment_map_no_probe():
     scene = scenes.build_scene_arrays("CORNELL_BOX")
     result = driver.bake(scene, ["Floor"], small(bake_resolution=8, bake_samples=4))
