@@ -78,6 +78,10 @@ class Settings:
     total_bounces: int = field(default=-1, metadata={"light_paths": True})   #: Cycles' Max Bounces (any kind)
     #: Cycles' Min Light Bounces: with a clamp, Cycles' Russian roulette starts after it (bake/clamp.py)
     min_light_bounces: int = field(default=0, metadata={"light_paths": True})
+    # Set by AUTO for the bake it chooses, not by the user (no scene.lmdp property).
+    #: GUIDED: rays of the fine guide's table per path of the bake (0: ``FINE_RAYS_PER_PATH``;
+    #: AUTO: ``SURE_TABLE_RAYS`` where unguided paths were very noisy; bake/fine_guide.py)
+    guide_table_rays: float = field(default=0.0, metadata={"auto": True})
     # General
     seed: int = 0                     #: random seed; every step is deterministic for a seed
     output_dir: str = ""              #: where bakes / stats / exports are written ('' = nowhere)

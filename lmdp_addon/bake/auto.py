@@ -69,6 +69,12 @@ NOISY = 12.0
 #: ... and at or above which GUIDED bakes without a guided pilot (light through a hatch, 23-55: GUIDED
 #: won every guided pilot there, 1.25-3.5x).
 SURE = 20.0
+#: Rays of the fine guide's table per path of a bake at or above :data:`SURE` (``Settings.
+#: guide_table_rays``; GUIDED's own default is ``fine_guide.FINE_RAYS_PER_PATH`` = 0.5): light
+#: through a hatch pays for a finer table sooner (narrow opening, 128², eight seeds: G = 16 in
+#: place of 8 at 16 and 32 samples, 1.12x and 1.14x the efficiency, at 4 samples G = 8 in place
+#: of 4, 1.54x; the Cornell box's GUIDED bake at 16 samples: 0.91x).
+SURE_TABLE_RAYS = 2.0
 #: Time of a GUIDED ray over an UNGUIDED one, both with light connections (the guide's lookups
 #: and mixture densities; measured on the narrow opening at 64 and 256 samples: 1.46x the time per
 #: path for 1.13x the rays).

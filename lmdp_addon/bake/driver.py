@@ -323,7 +323,8 @@ def make_tracer(scene, settings, lmdp=None, caster=None, portals=None):
     control = None
     if mode in ("GUIDED", "FINAL_GATHER", "RESIDUAL"):
         guide = build_guide(scene, lmdp, fine=mode == "GUIDED", seed=settings.seed,
-                            paths=settings.bake_resolution ** 2 * settings.bake_samples)
+                            paths=settings.bake_resolution ** 2 * settings.bake_samples,
+                            table_rays=getattr(settings, "guide_table_rays", 0.0))
         info = {"same_scene": bool(guide.same_scene), "points": int(lmdp.states.n_points),
                 "strata": int(lmdp.states.n_strata), "cost_mode": lmdp.solution.cost_mode,
                 **getattr(guide, "info", {})}
@@ -418,10 +419,11 @@ def _bake_auto(scene, names, settings, lmdp, progress, precompute_seconds, threa
                 lmdp = choice.lmdp = solve()
                 progress.end("solved")
                 seconds.update(getattr(lmdp, "seconds", {}) or {})
-            guided_settings = replace(settings, bake_mode="GUIDED", **({"splitting": False} if moderate else {}))
-            guided = make_tracer(scene, guided_settings, lmdp)
             choice.solved, choice.moderate = True, moderate
             choice.sure = choice.relative_variance >= auto.SURE
+            guided_settings = replace(settings, bake_mode="GUIDED", **({"splitting": False} if moderate else {}),
+                                      **({"guide_table_rays": auto.SURE_TABLE_RAYS} if choice.sure else {}))
+            guided = make_tracer(scene, guided_settings, lmdp)
             if not choice.sure:
                 second = _auto_pilot(scene, targets, guided_settings, guided, 2, progress, threads, paths)
                 choice.guided_gain = auto.efficiency(second, auto.GUIDED_RAY_COST) / auto.efficiency(first)

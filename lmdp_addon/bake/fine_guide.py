@@ -154,12 +154,14 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
         """The sums of chunk k of the table's rays (its own random stream: the chunks run on
         threads, and their sums are added in chunk order, so the table does not depend on them)."""
         rng = np.random.default_rng([int(seed), 0xF1E6, k])
-        first = np.zeros(m * C)
-        escape = np.zeros(m * C)
-        count = np.zeros(m * C)
         start = k * CHUNK_RAYS
         owner = owner_all[start:start + CHUNK_RAYS]
         c = cell_all[start:start + CHUNK_RAYS]
+        # The chunk's rays belong to consecutive states: its sums cover the slots lo .. lo + span.
+        lo = int(owner[0]) * C
+        span = (int(owner[-1]) + 1) * C - lo
+        first = np.zeros(span)
+        escape = np.zeros(span)
         x, y = concentric32((c // G + rng.random(len(c), dtype=np.float32)) / G,
                             (c % G + rng.random(len(c), dtype=np.float32)) / G)
         r2 = x * x + y * y
@@ -174,20 +176,20 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
         else:
             tri, _, bu, bv, _, tint = lights.transparency.intersect(caster, origin, d, rng)
         rays = len(d)
-        slot = owner * C + c
-        count += np.bincount(slot, minlength=m * C)
+        slot = owner * C + c - lo
+        count = np.bincount(slot, minlength=span).astype(np.float64)
         miss = np.flatnonzero(tri == -1)
         if len(miss):
             seen = (environment.radiance_at(d[miss]).astype(np.float64) @ LUMINANCE
                     if environment is not None else np.full(len(miss), world))
-            escape += np.bincount(slot[miss], weights=weight[miss] * seen, minlength=m * C)
+            escape += np.bincount(slot[miss], weights=weight[miss] * seen, minlength=span)
         hit = np.flatnonzero(tri >= 0)
         t = tri[hit]
         ng = face_normals[t]
         keep = (np.einsum("ij,ij->i", ng, d[hit]) < 0) & reflects[t]
         hit, t, ng = hit[keep], t[keep], ng[keep]
         if len(hit) == 0:
-            return first, escape, count, rays
+            return lo, first, escape, count, rays
         tc = corners[t]
         bu_h, bv_h = bu[hit], bv[hit]
         pos = tc[:, 0] + bu_h[:, None] * (tc[:, 1] - tc[:, 0]) + bv_h[:, None] * (tc[:, 2] - tc[:, 0])
@@ -204,8 +206,8 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
         if locator is not None:
             near = locator.locate_front(t, bu_h, bv_h, pos if locator.exact else None, workers=1)
             radiance = radiance + np.where(near >= 0, (albedo @ LUMINANCE) * z_in[np.maximum(near, 0)], 0.0)
-        first += np.bincount(slot[hit], weights=weight[hit] * radiance, minlength=m * C)
-        return first, escape, count, rays
+        first += np.bincount(slot[hit], weights=weight[hit] * radiance, minlength=span)
+        return lo, first, escape, count, rays
 
     chunks = range(-(-len(owner_all) // CHUNK_RAYS))
     with ThreadPoolExecutor(max_workers=max(1, min(len(chunks), TABLE_THREADS))) as pool:
@@ -214,10 +216,10 @@ def incoming_table(lmdp, resolution=FINE_RESOLUTION, rays_per_cell=FINE_RAYS_PER
     escape = np.zeros(m * C)
     count = np.zeros(m * C)
     rays = 0
-    for f, e, n, r in parts:
-        first += f
-        escape += e
-        count += n
+    for lo, f, e, n, r in parts:
+        first[lo:lo + len(f)] += f
+        escape[lo:lo + len(e)] += e
+        count[lo:lo + len(n)] += n
         rays += r
     first = first.reshape(m, C)
     return first, first + escape.reshape(m, C), count.reshape(m, C), rays
@@ -250,12 +252,14 @@ def guide_rows(table, floor=FINE_FLOOR):
     return (1.0 - floor) * q + floor / C
 
 
-def fine_resolution(n_points, paths=None, rays_per_cell=FINE_RAYS_PER_CELL, minimum=4):
+def fine_resolution(n_points, paths=None, rays_per_cell=FINE_RAYS_PER_CELL, minimum=4, rays_per_path=None):
     """G for ``n_points`` states and a bake of about ``paths`` paths (None: unknown): the largest
     power of two up to :data:`FINE_RESOLUTION` whose table fits the ray budget
-    (:data:`FINE_RAY_BUDGET`, :data:`FINE_RAYS_PER_PATH`), and never below ``minimum`` (the
-    side of the solve's own strata grid: the guide is never coarser than the u* it replaces)."""
-    budget = FINE_RAY_BUDGET if paths is None else min(FINE_RAY_BUDGET, FINE_RAYS_PER_PATH * paths)
+    (:data:`FINE_RAY_BUDGET`, ``rays_per_path`` table rays per path, default
+    :data:`FINE_RAYS_PER_PATH`), and never below ``minimum`` (the side of the solve's own strata
+    grid: the guide is never coarser than the u* it replaces)."""
+    per_path = FINE_RAYS_PER_PATH if not rays_per_path else float(rays_per_path)
+    budget = FINE_RAY_BUDGET if paths is None else min(FINE_RAY_BUDGET, per_path * paths)
     G = FINE_RESOLUTION
     while G > 4 and n_points * G * G * rays_per_cell > budget:
         G //= 2
@@ -263,9 +267,10 @@ def fine_resolution(n_points, paths=None, rays_per_cell=FINE_RAYS_PER_CELL, mini
 
 
 def build_fine_guide(scene, lmdp, resolution=None, rays_per_cell=FINE_RAYS_PER_CELL, seed=0,
-                     product=True, floor=FINE_FLOOR, neighbours=None, direct=True, paths=None):
+                     product=True, floor=FINE_FLOOR, neighbours=None, direct=True, paths=None,
+                     rays_per_path=None):
     """:class:`~lmdp_addon.bake.guide.StateGuide` over G x G cells (``resolution`` = G, default
-    :func:`fine_resolution` for a bake of ``paths`` paths) of the
+    :func:`fine_resolution` for a bake of ``paths`` paths and ``rays_per_path``) of the
     light arriving at the states (:func:`incoming_table`): per cell the mean of L̂ over the rays
     of the state and its ``neighbours`` (default :data:`FINE_NEIGHBOURS`) nearest states with
     the same normal (:func:`neighbour_matrix`), rows normalised and floored (:func:`guide_rows`).
@@ -274,7 +279,8 @@ def build_fine_guide(scene, lmdp, resolution=None, rays_per_cell=FINE_RAYS_PER_C
     t0 = time.perf_counter()
     if resolution is None:
         resolution = fine_resolution(lmdp.states.n_points, paths, rays_per_cell,
-                                     minimum=max(4, lmdp.states.strata_u, lmdp.states.strata_v))
+                                     minimum=max(4, lmdp.states.strata_u, lmdp.states.strata_v),
+                                     rays_per_path=rays_per_path)
     locator, object_map, same = guide_frame(scene, lmdp)
     first, later, count, rays = incoming_table(lmdp, resolution, rays_per_cell, seed, product, direct, locator)
     W = neighbour_matrix(locator, lmdp.states.normals, FINE_NEIGHBOURS if neighbours is None else int(neighbours))

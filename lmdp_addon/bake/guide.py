@@ -265,7 +265,7 @@ def guide_frame(scene, lmdp):
     return locator, object_map, same
 
 
-def build_guide(scene, lmdp, fine=False, seed=0, paths=None):
+def build_guide(scene, lmdp, fine=False, seed=0, paths=None, table_rays=None):
     """:class:`StateGuide` of the solved states for tracing ``scene``.
 
     ``lmdp``: anything with ``scene``, ``states``, ``dynamics``, ``solution``. The build's
@@ -273,12 +273,13 @@ def build_guide(scene, lmdp, fine=False, seed=0, paths=None):
     otherwise the states get a locator of their own. On another scene than the states' one,
     objects are matched by name (``object_map``). ``fine`` (GUIDED bakes) with a PHYSICAL
     solution: the fine guide of :mod:`~lmdp_addon.bake.fine_guide` (G x G cells of the light
-    arriving at each state, traced with ``seed``, G from the bake's ``paths``); otherwise
+    arriving at each state, traced with ``seed``, G from the bake's ``paths`` and ``table_rays``
+    per path); otherwise
     u*(k|s) over the solve's strata.
     """
     if fine and lmdp.solution.cost_mode == "PHYSICAL":
         from .fine_guide import build_fine_guide     # it builds on this module's StateGuide
-        return build_fine_guide(scene, lmdp, seed=seed, paths=paths)
+        return build_fine_guide(scene, lmdp, seed=seed, paths=paths, rays_per_path=table_rays)
     locator, object_map, same = guide_frame(scene, lmdp)
     # Both policies side by side: one neighbour search averages them (the mean is per column).
     S = lmdp.states.n_strata

@@ -20,7 +20,8 @@ def test_every_settings_field_has_a_property_with_its_type_and_default(fresh_sce
     settings_module = lmdp_ext.sub("lmdp_addon.settings")
     props = rna_properties()
     for field in dataclasses.fields(settings_module.Settings):
-        if field.metadata.get("light_paths"):   # set from the scene's Cycles Light Paths, not by the user
+        if field.metadata.get("light_paths") or field.metadata.get("auto"):   # set from the scene's
+            # Cycles Light Paths or by AUTO, not by the user
             assert field.name not in props
             continue
         assert field.name in props, f"scene.lmdp has no property for Settings.{field.name}"

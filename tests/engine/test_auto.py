@@ -19,7 +19,7 @@ import pytest
 
 from bake_scenes import K
 from lmdp_addon import demo_geometry as scenes
-from lmdp_addon.bake import auto
+from lmdp_addon.bake import auto, fine_guide
 from lmdp_addon.bake import driver as baking
 from lmdp_addon.model import pipeline
 from lmdp_addon.settings import Settings
@@ -197,7 +197,8 @@ def test_noisy_narrow_opening_solves_once_and_keeps_the_mean(narrow):
 
 def test_a_very_noisy_pilot_bakes_guided_without_a_guided_pilot(narrow, narrow_solved, monkeypatch):
     """Above ``auto.SURE`` (the narrow opening's RoomAFloor: measured 76-126) no guided pilot runs:
-    the bake is GUIDED's own with the given solution, byte for byte, and the report says so."""
+    the bake is GUIDED's own with the given solution and the larger table (``SURE_TABLE_RAYS``),
+    byte for byte, and the report says so."""
     monkeypatch.setattr(auto, "SURE", auto.NOISY)
     pilots = []
     real = baking._auto_pilot
@@ -206,7 +207,12 @@ def test_a_very_noisy_pilot_bakes_guided_without_a_guided_pilot(narrow, narrow_s
     choice = result.auto
     assert pilots == ["UNGUIDED"] and choice.sure and choice.solved and choice.mode == "GUIDED"
     assert np.isnan(choice.guided_gain) and "very noisy" in choice.sentence()
-    same = baking.bake(narrow, ["RoomAFloor"], settings(bake_mode="GUIDED"), narrow_solved, threads=2)
+    s = settings()
+    assert result.guide_info["fine_resolution"] == fine_guide.fine_resolution(
+        narrow_solved.states.n_points, s.bake_resolution ** 2 * s.bake_samples,
+        minimum=max(4, narrow_solved.states.strata_u), rays_per_path=auto.SURE_TABLE_RAYS)
+    same = baking.bake(narrow, ["RoomAFloor"], settings(bake_mode="GUIDED", guide_table_rays=auto.SURE_TABLE_RAYS),
+                       narrow_solved, threads=2)
     np.testing.assert_array_equal(result.object("RoomAFloor").value, same.object("RoomAFloor").value)
 
 

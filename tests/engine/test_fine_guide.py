@@ -132,6 +132,8 @@ def test_thesis_solutions_keep_the_strata_guide_and_g_follows_the_budget(cornell
     assert fine_guide.fine_resolution(8192) == 8
     assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 64) == 16      # 1/2 ray per path
     assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 16) == 8
+    assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 16, rays_per_path=2.0) == 16   # AUTO when sure
+    assert fine_guide.fine_resolution(2048, paths=128 ** 2 * 4, rays_per_path=2.0) == 8
     assert fine_guide.fine_resolution(10 ** 6) == 4
     assert fine_guide.fine_resolution(10 ** 6, minimum=8) == 8              # never below the strata
 
