@@ -486,11 +486,16 @@ PORTALS_CLAMPED = ("world portals off: a sample clamp is on (Cycles clamps the v
                    "samples; Clamp Direct / Indirect 0 turns them on)")
 
 
+def _portals_asked(tracer, settings):
+    """``settings.world_portals`` is on and the scene has an environment map that lights it."""
+    return getattr(settings, "world_portals", False) and tracer.environment is not None
+
+
 def _portal_probe(tracer, settings):
-    """A :class:`portals.PortalProbe` for a bake with ``tracer`` when ``settings.world_portals`` is
-    on, the scene has an environment map that lights it and no sample clamp is on (the clamped
-    light samples must be distributed as Cycles', as for light connections), else None."""
-    if not getattr(settings, "world_portals", False) or tracer.environment is None or tracer.clamp is not None:
+    """A :class:`portals.PortalProbe` for a bake with ``tracer`` when portals are asked for
+    (:func:`_portals_asked`) and no sample clamp is on (the clamped light samples must be
+    distributed as Cycles', as for light connections), else None."""
+    if not _portals_asked(tracer, settings) or tracer.clamp is not None:
         return None
     return world_portals.PortalProbe(tracer.scene)
 
@@ -526,8 +531,8 @@ def _portals_info(portals, probe, tracer, settings):
     """``BakeResult.portals``: what the probe learned, or why there was none although
     ``settings`` asked for portals under an environment map (empty otherwise)."""
     if probe is None:
-        asked = getattr(settings, "world_portals", False) and tracer.environment is not None
-        return {"used": False, "off": PORTALS_CLAMPED} if asked and tracer.clamp is not None else {}
+        clamped = _portals_asked(tracer, settings) and tracer.clamp is not None
+        return {"used": False, "off": PORTALS_CLAMPED} if clamped else {}
     return {"used": portals is not None, **(portals.info if portals is not None else
                                             {"probe_samples": probe.samples, "probe_seen": probe.visible})}
 
