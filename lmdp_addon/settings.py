@@ -45,6 +45,7 @@ class Settings:
     bake_mode: str = "AUTO"           #: 'AUTO', 'UNGUIDED', 'GUIDED', 'FINAL_GATHER' or 'RESIDUAL' (docs/design.md)
     light_share: float = 0.5          #: UNGUIDED / GUIDED: share s of paths with a light vertex (light connections, bake/tracer)
     splitting: bool = True            #: GUIDED: Russian roulette and splitting by the solution (bake/splitting)
+    path_reuse: int = 4               #: UNGUIDED / GUIDED: tiles of about N x N texels share their first bounces (1: off; bake/reuse)
     world_portals: bool = True        #: HDRI worlds: light samples where a probe saw the world (bake/portals)
     bake_resolution: int = 128        #: lightmap width = height in pixels
     bake_samples: int = 64            #: paths per texel

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from ..lmdp_addon.bake import connections, driver
+from ..lmdp_addon.bake import connections, driver, reuse
 from ..lmdp_addon.bake.checks import check_bake, check_texels, scene_fingerprint
 from ..lmdp_addon.bake.content import BakeContent
 from ..lmdp_addon.bake.islands import denoise_input
@@ -79,6 +79,7 @@ class BakedLightmaps:
     denoise: dict = field(default_factory=dict)  #: object name -> islands.DenoiseInput (denoise on)
     uv_maps: dict = field(default_factory=dict)  #: object name -> the UV map its lightmap is laid out on
     connections_off: str = None        #: why no light connections were traced although asked for
+    reuse_off: str = None              #: why the texels did not share their first bounces although asked to
 
 
 def check_light_paths(light_paths):
@@ -225,7 +226,8 @@ def compute_bake(inputs, settings, progress):
     return BakedLightmaps(result=result, keys=dict(inputs.keys), light_paths=inputs.light_paths, solved=solved,
                           names=carriers, denoise={k: v for k, v in prepared.items() if v is not None},
                           uv_maps=dict(inputs.uv_maps),
-                          connections_off=connections.off_reason(inputs.scene, settings))
+                          connections_off=connections.off_reason(inputs.scene, settings),
+                          reuse_off=reuse.off_reason(inputs.scene, settings))
 
 
 def _objects_by_key(keys):
@@ -289,4 +291,11 @@ def apply_bake(context, baked, settings, hook_up="NONE"):
         message += f"; light connections (share {settings.light_share:g})"
     elif baked.connections_off:
         message += f"; {baked.connections_off}"
+    shared = sum(ob.stats.shared_hits for ob in result.objects)
+    if shared:
+        paths = max(sum(ob.stats.paths for ob in result.objects), 1)
+        message += (f"; path reuse (tiles of about {settings.path_reuse} x {settings.path_reuse} texels, "
+                    f"{shared / paths:.1f} other texels' first hits per path)")
+    elif baked.reuse_off:
+        message += f"; {baked.reuse_off}"
     return message, warnings

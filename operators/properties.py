@@ -214,6 +214,14 @@ class LMDPSceneSettings(bpy.types.PropertyGroup):
                     "(share, 0..1; 0: off)",
         default=_DEFAULTS.light_share, min=0.0, max=1.0, subtype='FACTOR',
     )
+    path_reuse: IntProperty(
+        name="Path Reuse",
+        description="AUTO, UNGUIDED and GUIDED: tiles of about N x N neighbouring texels share the light their "
+                    "first bounces found, each texel weighting the others' first hits by the balance heuristic "
+                    "(a shadow ray each; unbiased; far less noise per sample). Off while a sample clamp is on, "
+                    "or with transparent materials (texels per side; 1: off)",
+        default=_DEFAULTS.path_reuse, min=1, max=8,
+    )
     splitting: BoolProperty(
         name="Splitting",
         description="GUIDED (also AUTO's guided part): Russian roulette and splitting by the solution: paths "

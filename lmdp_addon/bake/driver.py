@@ -41,7 +41,7 @@ import numpy as np
 from ..farm import session as farm_session
 from ..progress import Progress
 from ..sampling import stratified_first_uniforms
-from . import auto, portals as world_portals
+from . import auto, portals as world_portals, reuse
 from .checks import check_bake, check_texels, object_index, object_texels
 from .clamp import SampleClamp
 from .content import BakeContent
@@ -87,6 +87,9 @@ def bake_threads(cap=None):
 BAKE_THREADS = bake_threads()
 #: Most independent batches per texel (for the standard error).
 MAX_BATCHES = 8
+#: Largest (batches x texels x 3) float32 array of batch means an ObjectBake keeps
+#: (``ObjectBake.batch_means``, the errors of a region's mean); larger bakes keep none.
+BATCH_MEANS_BYTES = 64 << 20
 #: Texels whose nearest states are looked up at once.
 STATE_LOOKUP_CHUNK = 1 << 18
 
@@ -148,14 +151,15 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
             sub = ts.subset(slice(lo, lo + STATE_LOOKUP_CHUNK))
             states[lo:lo + len(sub)] = guide.states_at(sub.position, sub.normal, np.full(len(sub), index))
     progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
+    means = np.zeros((B, n_tex, 3), np.float32) if B > 1 and B * n_tex * 12 <= BATCH_MEANS_BYTES else None
     acc, acc2, stats = _trace_batches(tracer, ts, tris[ts.triangle], states, B, N // B, int(settings.seed),
-                                      object_number, name, progress, threads, runner, min_units)
+                                      object_number, name, progress, threads, runner, min_units, means)
     del states
     value, stderr = _batch_statistics(acc, acc2, B)
     del acc, acc2
     return ObjectBake(name=name, texels=ts, triangles=tris, value=value, standard_error=stderr,
                       image=object_image(ts, value, R, settings.bake_margin) if image else None,
-                      samples=N, batches=B, stats=stats, seconds=time.perf_counter() - t0)
+                      samples=N, batches=B, stats=stats, seconds=time.perf_counter() - t0, batch_means=means)
 
 
 def object_image(ts, value, R, margin):
@@ -240,9 +244,14 @@ def trace_unit(tracer, job, unit_id):
         first, choice = stratified_first_uniforms(hi - lo, per_batch, rng)
         u[rows], u_mix[rows] = first.reshape(k, 2), choice.reshape(k)
     control = np.zeros((k * group, 3), np.float32) if tracer.control is not None else None
+    tiles = None
+    if tracer.path_reuse > 1 and control is None:     # path reuse: the tile of every path (bake/reuse)
+        texel = np.tile(np.repeat(np.arange(lo, hi), per_batch), group)
+        sample = b0 * per_batch + np.arange(k * group) // k * per_batch + np.tile(np.arange(per_batch), (hi - lo) * group)
+        tiles = reuse.groups(job.texels.row[texel], job.texels.col[texel], sample, tracer.path_reuse)
     values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
                               u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group),
-                              control_out=control)
+                              control_out=control, reuse_groups=tiles)
     if control is not None:              # RESIDUAL: the paths estimate f - g (residual.py)
         values -= control
     sums = values.reshape(group, hi - lo, per_batch, 3).sum(axis=2, dtype=np.float64)
@@ -256,14 +265,15 @@ def trace_unit(tracer, job, unit_id):
 
 
 def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_number, name, progress, threads,
-                   runner=None, min_units=MIN_UNITS):
+                   runner=None, min_units=MIN_UNITS, means=None):
     """``(Σ_b mean_b, Σ_b mean_b², TraceStats)`` over the B batches of ``per_batch`` paths of
     every texel of ``ts`` (``triangles``: each texel's scene triangle, for its rays' offset;
     ``states``: each texel's nearest state, -1: none), traced as the
     :func:`work_units` on ``threads`` threads, or by ``runner(job, unit_ids)`` (a farm's: it
     yields :func:`trace_unit`'s outcomes in any order). Running sums keep memory O(texels), not
     O(batches x texels); they are formed in unit order, so bakes are bit-identical whatever
-    order the units finish in."""
+    order the units finish in. ``means``: a (B, texels, 3) array that receives each batch's texel
+    means (:attr:`ObjectBake.batch_means`), or None."""
     n_tex = len(ts)
     group, units = work_units(n_tex, B, per_batch, min_units)
     acc = np.zeros((n_tex, 3), np.float64)
@@ -282,10 +292,12 @@ def _trace_batches(tracer, ts, triangles, states, B, per_batch, seed, object_num
         unit_id, part, st = outcome
         pending[unit_id] = part
         while order[0] in pending:
-            _, lo, hi = units[order[0]]
-            for mean in pending.pop(order[0]) / per_batch:    # the unit's batches in turn
+            b0, lo, hi = units[order[0]]
+            for b, mean in enumerate(pending.pop(order[0]) / per_batch, start=b0):   # the unit's batches
                 acc[lo:hi] += mean
                 acc2[lo:hi] += mean * mean
+                if means is not None:
+                    means[b, lo:hi] = mean
             order[0] += 1
         stats.add(st)
         progress.update(done / total, f"{name}: {done}/{total} work units")
@@ -346,7 +358,7 @@ def make_tracer(scene, settings, lmdp=None, caster=None, portals=None):
                             clamp=SampleClamp.from_settings(settings),
                             min_light_bounces=getattr(settings, "min_light_bounces", 0),
                             light_share=getattr(settings, "light_share", 0.0),
-                            splitting=split)
+                            splitting=split, path_reuse=getattr(settings, "path_reuse", 1))
     tracer.use_portals(portals)
     return tracer, guide, info
 
@@ -466,16 +478,21 @@ def _auto_pilot(scene, targets, settings, made, part, progress, threads=None, pa
     at the ``targets`` texels (:func:`_auto_texels`) with the tracer ``made``, in one work unit
     per object (a pilot's arrays are too small for a second thread to gain: it waits on the
     first's Python), on random streams of their own (seed ``PILOT_STREAMS · seed + part``):
-    measurements only, never part of the lightmaps (no image)."""
+    measurements only, never part of the lightmaps (no image). The pilot's paths keep their own
+    first bounces (no path reuse): AUTO's thresholds are the variance of single paths."""
     tracer, guide, _ = made
     n = auto.pilot_samples(sum(len(t[2][0]) for t in targets), settings.bake_samples, paths)
     s = replace(settings, bake_samples=n, seed=auto.PILOT_STREAMS * int(settings.seed) + part)
     out = []
-    for number, name, texels, R, _ in targets:
-        progress.begin(f"AUTO pilot ({settings.bake_mode}) {name}")
-        out.append(bake_object(tracer, scene, name, s, object_number=number, guide=guide, progress=progress,
-                               threads=threads, texels=texels, resolution=R, min_units=1, image=False))
-        progress.end(f"{out[-1].n_texels} texels")
+    tile, tracer.path_reuse = tracer.path_reuse, 1
+    try:
+        for number, name, texels, R, _ in targets:
+            progress.begin(f"AUTO pilot ({settings.bake_mode}) {name}")
+            out.append(bake_object(tracer, scene, name, s, object_number=number, guide=guide, progress=progress,
+                                   threads=threads, texels=texels, resolution=R, min_units=1, image=False))
+            progress.end(f"{out[-1].n_texels} texels")
+    finally:
+        tracer.path_reuse = tile
     return out
 
 

@@ -33,6 +33,8 @@ class ObjectBake:
     seconds         wall time of this object's bake
     raw_image       (R, R, 4) the path-traced image when ``image`` was denoised, else None
     denoised_value  (n, 3) the denoised texels when ``image`` was denoised, else None
+    batch_means     (B, n, 3) float32 each independent batch's texel means (None: one batch, or
+                    a bake larger than ``driver.BATCH_MEANS_BYTES``): :meth:`mean_and_error`
     """
 
     name: str
@@ -48,6 +50,26 @@ class ObjectBake:
     raw_image: np.ndarray = None
     denoised_value: np.ndarray = None
     atlas: str = ""                 #: the atlas whose shared image holds this lightmap ('' = its own)
+    batch_means: np.ndarray = None
+
+    def mean_and_error(self, texels=None):
+        """``(mean, standard error)`` (3,) of the mean value of the texels ``texels`` (a mask or
+        indices; None: all). The error comes from the batches' means of the region, which are
+        independent: it holds whether or not texels share paths (path reuse shares first bounces
+        within a batch, ``reuse``). Without ``batch_means`` it assumes independent texels, which
+        only holds without path reuse (``stats.shared_hits`` 0)."""
+        sel = slice(None) if texels is None else texels
+        value = self.value[sel].astype(np.float64)
+        mean = value.mean(axis=0)
+        if self.batch_means is not None:
+            region = self.batch_means[:, sel].astype(np.float64).mean(axis=1)        # (B, 3)
+            B = len(region)
+            return mean, np.sqrt(((region - region.mean(axis=0)) ** 2).sum(axis=0) / (B - 1) / B)
+        if self.stats.shared_hits:
+            raise ValueError(f"{self.name}: the error of a region's mean needs the batch means of a bake "
+                             "with path reuse (its texels share paths)")
+        se = self.standard_error[sel].astype(np.float64)
+        return mean, np.sqrt((se ** 2).sum(axis=0)) / len(value)
 
     @property
     def image_name(self):

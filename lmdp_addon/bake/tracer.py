@@ -78,7 +78,7 @@ from ..lights import EmitterSampler
 from ..raycast import RayCaster
 from ..sampling import dot, rows, set_rows
 from ..transparency import Transparency
-from . import connections
+from . import connections, reuse
 from .clamp import clamp_light
 from .content import BakeContent, times_color
 from .guide import CosineDirections, GuidedDirections
@@ -109,6 +109,7 @@ class TraceStats:
     glossy_vertices: int = 0  #: vertices on surfaces with microfacet lobes (BSDF sampling)
     light_vertices: int = 0   #: light vertices traced for light connections
     connections: int = 0      #: light connections that reached their light vertex (shadow ray clear)
+    shared_hits: int = 0      #: first hits of other texels' paths a texel could use (path reuse)
 
     def add(self, other):
         for name in self.__dataclass_fields__:
@@ -151,7 +152,7 @@ class IndirectTracer:
     def __init__(self, scene, mode="UNGUIDED", max_bounces=8, guide=None, gather=None,
                  guide_fraction=0.5, rr_start=3, caster=None, control=None, content=None,
                  glossy_bounces=-1, total_bounces=-1, clamp=None, min_light_bounces=0, light_share=0.0,
-                 splitting=None):
+                 splitting=None, path_reuse=1):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
         if mode in ("GUIDED", "FINAL_GATHER") and guide is None:
@@ -237,6 +238,10 @@ class IndirectTracer:
         #: gather modes.
         self.splitting = splitting if (splitting is not None and self.clamp is None
                                        and mode in ("UNGUIDED", "GUIDED")) else None
+        #: Path reuse (``reuse``): tiles of ``path_reuse`` x ``path_reuse`` texels share their
+        #: first bounces (1: off; off with the clamp, transparency and the gather modes).
+        self.path_reuse = max(int(path_reuse), 1) if reuse.unavailable(mode, self.clamp, self.transparency) is None \
+            else 1
 
     def use_portals(self, portals):
         """Draw the environment map's light samples by the :class:`~lmdp_addon.bake.portals.Portals`
@@ -250,7 +255,7 @@ class IndirectTracer:
 
     # ---- the wavefront loop ----------------------------------------------------------------------
     def trace(self, points, normals, states, u_first, u_mix, rng, triangles=None, control_out=None,
-              first_hit_only=False):
+              first_hit_only=False, reuse_groups=None):
         """Estimates I(x) = E_ind/π for paths starting at ``points (n, 3)`` on surfaces with
         normals ``normals (n, 3)`` (the side that is baked).
 
@@ -262,6 +267,8 @@ class IndirectTracer:
                  largest offset of the scene, ``RayCaster.offset()``)
         control_out  (n, 3) float32 zeros (RESIDUAL): receives each path's control variate g at
                  its first hit (``residual``); ``first_hit_only``: stop there (control samples)
+        reuse_groups (n,) the tile of each path (``reuse.groups``): with ``path_reuse`` > 1 the
+                 paths of a tile share their first bounces (``reuse.combine``); None: each its own
         Returns ``(values (n, 3) float32, TraceStats)``; the mean of the values is unbiased for
         I (biased by the solution's discretisation in FINAL_GATHER).
         """
@@ -297,6 +304,9 @@ class IndirectTracer:
         beta = np.ones((n, 3), np.float32)
         lift = (np.full(n, self.caster.offset(), np.float32) if triangles is None
                 else np.take(self.offsets, triangles))
+        first_bounce = None      # path reuse: x_0 and y_1 of every path (``reuse``)
+        if reuse_groups is not None and self.path_reuse > 1 and control_out is None:
+            first_bounce = reuse.FirstBounce(pos + lift[:, None] * gnrm, nrm, gnrm, states, w)
         reg = None     # the world portals' region of each path's current vertex
         if self.world_regions is not None:
             reg = np.zeros(n, np.int64) if triangles is None else np.take(self.world_regions, triangles)
@@ -315,8 +325,9 @@ class IndirectTracer:
         if self.light_share > 0:
             lv = connections.LightVertices(self, n, rng, stats)
             joins = connections.JoinState(n, self.light_share, self.lights)
-            connections.connect(self, L, lv, idx, pos, nrm, gnrm, lift, None, states, True, 0, stats)
-            joins.joined[idx] = True
+            if first_bounce is None:    # with path reuse the tile draws y_1: x_0 is not joined
+                connections.connect(self, L, lv, idx, pos, nrm, gnrm, lift, None, states, True, 0, stats)
+                joins.joined[idx] = True
         idx, pos, nrm, gnrm, lift, d, w, cos_prev, beta, reg = _select_rows(np.flatnonzero(w > 0), idx, pos, nrm,
                                                                             gnrm, lift, d, w, cos_prev, beta, reg)
         # Filter Glossy: the smallest (unguided, Cycles' min_ray_pdf) density of the path's rays
@@ -346,6 +357,8 @@ class IndirectTracer:
                 if self.lamp_hits:   # lamps the rays cross before their hit (they go on through)
                     self._lamps_found(L, idx, beta * w[:, None], origin, nrm, d, tri, dist, cos_prev, q_prev,
                                       bounce=bounce, rho0=rho0, stats=stats)
+            if first_bounce is not None and bounce == 1 and self.content.direct:
+                first_bounce.direct = L.copy()       # x_0's own light, kept out of the reuse
             if bounce > self.total_limit:
                 break
             if n_glossy is not None:   # Cycles' diffuse and glossy limits (the texel's bounce is diffuse)
@@ -369,6 +382,8 @@ class IndirectTracer:
                 # β_k = β_{k-1} w_{k-1}: the BSDF's weight f cos / p joins when ω_k is sampled
                 beta_hit[glossy] = rows(beta, glossy) * rows(w, glossy)[:, None]
             beta = beta_hit
+            if first_bounce is not None and bounce == 1:
+                first_bounce.arrive(idx, pos, gnrm, tri, None if self.glossy is None else self.glossy[tri])
             wi = -d if self.glossy is not None else None   # the view direction of glossy vertices
             lift = np.take(self.offsets, tri)
             stats.vertices += len(idx)
@@ -473,6 +488,8 @@ class IndirectTracer:
             bounce += 1
         if paths is not None:
             L = paths.gathered(L)
+        if first_bounce is not None:
+            L = reuse.combine(self, first_bounce, L, reuse_groups, stats)
         if self.zero_colour and triangles is not None:
             L = _even_colour(L, colour0)
         if self.content.multiply_color:   # Cycles' COLOR filter: times the diffuse colour at x

@@ -345,6 +345,9 @@ class LMDP_PT_bake(_LMDPSection, bpy.types.Panel):
         row.active = props.bake_mode in ('AUTO', 'UNGUIDED', 'GUIDED')   # the path tracers join light vertices
         row.prop(props, "light_share")
         row = layout.row()
+        row.active = props.bake_mode in ('AUTO', 'UNGUIDED', 'GUIDED')   # the path tracers share first bounces
+        row.prop(props, "path_reuse")
+        row = layout.row()
         row.active = props.bake_mode in ('AUTO', 'GUIDED')   # the solution's roulette and splitting
         row.prop(props, "splitting")
         row = layout.row()
