@@ -39,8 +39,8 @@ from bench.common import DEFAULT_NAME, RESULTS, log  # noqa: E402
 
 SECTIONS = ("bake", "build", "solve", "convergence", "policy", "farm")
 #: Plain path tracing, the issue's reference: cosine directions and light sampling, without the
-#: bake's light connections and world portals.
-PLAIN = {"light_share": 0.0, "world_portals": False}
+#: bake's light connections, path reuse and world portals.
+PLAIN = {"light_share": 0.0, "world_portals": False, "path_reuse": 1}
 
 
 def profiles():
@@ -71,10 +71,13 @@ def profiles():
             # the reference: plain path tracing (no light connections, the map's own world samples)
             dict(mode="UNGUIDED", name="UNGUIDED", ladder=ladder, settings=PLAIN),
             dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=ladder,
+                 settings={"world_portals": False, "path_reuse": 1}),
+            dict(mode="UNGUIDED", name="UNGUIDED + connections + path reuse", ladder=ladder,
                  settings={"world_portals": False}),
             dict(mode="UNGUIDED", name="UNGUIDED + world portals", ladder=ladder, cases=("sun_hdri",),
-                 settings={"light_share": 0.0}),
-            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 32, 64, 128, 256)),   # 32, 128: a finer curve for the time to Cycles
+                 settings={"light_share": 0.0, "path_reuse": 1}),
+            # 4, 8: below AUTO's pilot (unguided); 32, 128: a finer curve for the time to Cycles
+            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(4, 8, 16, 32, 64, 128, 256)),
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts (defaults)", ladder=(16, 64, 256)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=ladder),
             dict(mode="GUIDED", name="GUIDED without splitting", ladder=(16, 64, 256), settings={"splitting": False}),
@@ -101,10 +104,12 @@ def profiles():
         lmdp_methods=[
             dict(mode="UNGUIDED", name="UNGUIDED", ladder=(4, 16, 64), settings=PLAIN),
             dict(mode="UNGUIDED", name="UNGUIDED + light connections", ladder=(4, 16, 64),
+                 settings={"world_portals": False, "path_reuse": 1}),
+            dict(mode="UNGUIDED", name="UNGUIDED + connections + path reuse", ladder=(4, 16, 64),
                  settings={"world_portals": False}),
             dict(mode="UNGUIDED", name="UNGUIDED + world portals", ladder=(4, 16, 64), cases=("sun_hdri",),
-                 settings={"light_share": 0.0}),
-            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(16, 64)),
+                 settings={"light_share": 0.0, "path_reuse": 1}),
+            dict(mode="AUTO", name=DEFAULT_NAME, ladder=(4, 16, 64)),
             dict(mode="RESIDUAL", name="RESIDUAL 2048 pts", ladder=(16, 64)),
             dict(mode="GUIDED", name="GUIDED 2048 pts (defaults)", ladder=(4, 16, 64)),
             dict(mode="GUIDED", name="GUIDED without splitting", ladder=(4, 16, 64), settings={"splitting": False}),

@@ -13,8 +13,9 @@ not depend on the sample count); the cost per sample is the bake's wall time (it
 gather, included) over the samples. Efficiency = 1 / (variance x cost), relative to UNGUIDED's,
 without and with the LMDP precompute. FINAL_GATHER's variance leaves out its bias.
 
-UNGUIDED is plain path tracing (``light_share`` 0); "+ connections" the light connections
-(``bake/connections.py``); "+ splitting" the solution's Russian roulette and splitting
+UNGUIDED is plain path tracing (``light_share`` 0, ``path_reuse`` 1); "+ connections" the light
+connections (``bake/connections.py``); "+ path reuse" the first bounces shared by tiles of texels
+(``bake/reuse.py``); "+ splitting" the solution's Russian roulette and splitting
 (``bake/splitting.py``); AUTO the default mode (``bake/auto.py``), given the solved LMDP. GUIDED uses the fine guide (``bake/fine_guide.py``); ``--fine`` adds GUIDED bakes with other
 guides (:data:`FINE_VARIANTS`: ``strata``, u* over the solve's 16 strata; fine-guide variants,
 ``G16@0.3`` with α = 0.3). The time of a guide's table is listed on its own ("table s"): the
@@ -95,7 +96,8 @@ def measure(scene, receiver, settings, lmdp, technique):
     if "fraction" in options:
         settings = replace(settings, guide_fraction=options["fraction"])
     settings = replace(settings, light_share=options.get("light_share", settings.light_share),
-                       splitting=options.get("splitting", settings.splitting))
+                       splitting=options.get("splitting", settings.splitting),
+                       path_reuse=options.get("path_reuse", settings.path_reuse))
     try:
         t0 = time.process_time() if CPU_TIME else time.perf_counter()
         result = driver.bake(scene, [receiver], replace(settings, bake_mode=mode),
@@ -111,11 +113,15 @@ def measure(scene, receiver, settings, lmdp, technique):
 
 def techniques_of(args):
     """The techniques of the command line: (label, mode, options)."""
-    out = [("UNGUIDED", "UNGUIDED", {"light_share": 0.0})]      # plain path tracing: the reference
-    out += [("UNGUIDED + connections", "UNGUIDED", {})]
-    out += [("GUIDED", "GUIDED", {"light_share": 0.0, "splitting": False})]
-    out += [("GUIDED + connections", "GUIDED", {"splitting": False})]
-    out += [("GUIDED + connections + splitting", "GUIDED", {})]
+    one = {"path_reuse": 1}
+    out = [("UNGUIDED", "UNGUIDED", {"light_share": 0.0, **one})]      # plain path tracing: the reference
+    out += [("UNGUIDED + connections", "UNGUIDED", one)]
+    out += [("UNGUIDED + path reuse", "UNGUIDED", {"light_share": 0.0})]
+    out += [("UNGUIDED + connections + path reuse", "UNGUIDED", {})]
+    out += [("GUIDED", "GUIDED", {"light_share": 0.0, "splitting": False, **one})]
+    out += [("GUIDED + connections", "GUIDED", {"splitting": False, **one})]
+    out += [("GUIDED + connections + splitting", "GUIDED", one)]
+    out += [("GUIDED + connections + splitting + path reuse", "GUIDED", {})]
     out += [("AUTO (default)", "AUTO", {})]
     if not args.only_fine:
         out += [("FINAL_GATHER", "FINAL_GATHER", {})]
@@ -124,7 +130,7 @@ def techniques_of(args):
         fraction = None
         if "@" in label:
             label, fraction = label.split("@")
-        options = {"fine": FINE_VARIANTS[label], "light_share": 0.0, "splitting": False}   # the guide alone
+        options = {"fine": FINE_VARIANTS[label], "light_share": 0.0, "splitting": False, **one}   # the guide alone
         if fraction is not None:
             options["fraction"] = float(fraction)
         out.append((f"GUIDED {label}" + (f" α={fraction}" if fraction else ""), "GUIDED", options))
