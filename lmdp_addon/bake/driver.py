@@ -46,6 +46,7 @@ from .checks import check_bake, check_texels, object_index, object_texels
 from .clamp import SampleClamp
 from .content import BakeContent
 from .gather import build_gather
+from .memory import batch_means_bytes
 from .guide import build_guide
 from .residual import ControlVariate
 from .splitting import SplitField
@@ -87,9 +88,6 @@ def bake_threads(cap=None):
 BAKE_THREADS = bake_threads()
 #: Most independent batches per texel (for the standard error).
 MAX_BATCHES = 8
-#: Largest (batches x texels x 3) float32 array of batch means an ObjectBake keeps
-#: (``ObjectBake.batch_means``, the errors of a region's mean); larger bakes keep none.
-BATCH_MEANS_BYTES = 64 << 20
 #: Texels whose nearest states are looked up at once.
 STATE_LOOKUP_CHUNK = 1 << 18
 
@@ -151,7 +149,7 @@ def bake_object(tracer, scene, name, settings, object_number=0, guide=None, prog
             sub = ts.subset(slice(lo, lo + STATE_LOOKUP_CHUNK))
             states[lo:lo + len(sub)] = guide.states_at(sub.position, sub.normal, np.full(len(sub), index))
     progress.update(0.0, f"{name}: {n_tex} texels x {N} samples")
-    means = np.zeros((B, n_tex, 3), np.float32) if B > 1 and B * n_tex * 12 <= BATCH_MEANS_BYTES else None
+    means = np.zeros((B, n_tex, 3), np.float32) if batch_means_bytes(n_tex, B) else None
     acc, acc2, stats = _trace_batches(tracer, ts, tris[ts.triangle], states, B, N // B, int(settings.seed),
                                       object_number, name, progress, threads, runner, min_units, means)
     del states

@@ -2,13 +2,14 @@
 
 The bake holds, for every baked object until it returns (``results.ObjectBake``): its texels
 (:data:`~lmdp_addon.bake.texels.TEXEL_BYTES` each), their value and standard error (2 x 3
-float32) and its R x R RGBA float32 image; the Blender layer then writes each image into a Blender
+float32), their batch means up to :data:`BATCH_MEANS_BYTES` and its R x R RGBA float32 image; the Blender layer then writes each image into a Blender
 image of the same size. While one object is baked it needs, on top, the largest of:
 
 * rasterising it (``texels.RASTER_BYTES_PER_TEXEL`` per texel and a chunk of candidates);
 * tracing it: the running sums of the batch means and their squares (2 x 3 float64), the nearest
   state of each texel (int64), and the work units in flight (``driver.PATHS_PER_UNIT`` paths
-  each, :data:`PATH_BYTES` per path);
+  each, :data:`PATH_BYTES` per path, and with path reuse a block of tile pairs each,
+  :data:`REUSE_BLOCK_BYTES`);
 * its statistics (the sums and one temporary, 3 x 3 float64) or its image (the texels' values as
   an image and the float64 copy and masks of the margin's dilation, :data:`FINISH_BYTES_PER_PIXEL`).
 
@@ -17,7 +18,15 @@ are rounded up from the peak memory of bakes measured with ``tracemalloc`` and t
 peak resident size, so the estimate is an upper bound (``tests/engine/test_hostile_input.py``
 checks it against a bake's traced peak).
 """
+from .reuse import PAIRS_PER_BLOCK
 from .texels import MAX_CANDIDATES, RASTER_BYTES_PER_TEXEL, TEXEL_BYTES
+
+#: Largest (batches x texels x 3) float32 array of batch means an ObjectBake keeps
+#: (``ObjectBake.batch_means``: the errors of a region's mean); larger bakes keep none.
+BATCH_MEANS_BYTES = 64 << 20
+#: Bytes of one block of path reuse's tile pairs in flight (``reuse.combine``: about 16
+#: float32 arrays of a pair each, and their indices).
+REUSE_BLOCK_BYTES = 96 * PAIRS_PER_BLOCK
 
 #: Bytes kept per texel of a baked object: its texel and its value and standard error.
 RESULT_BYTES_PER_TEXEL = TEXEL_BYTES + 2 * 3 * 4
@@ -47,10 +56,20 @@ def estimate_bake_bytes(texel_counts, resolution, samples, n_triangles, threads,
     counts = [int(n) for n in texel_counts]
     sides = [int(r) for r in resolution] if hasattr(resolution, "__len__") else [int(resolution)] * len(counts)
     pixels = max(sides, default=0) ** 2
-    kept = sum(RESULT_BYTES_PER_TEXEL * n + RESULT_BYTES_PER_PIXEL * r * r for n, r in zip(counts, sides))
+    batches = max(b for b in range(1, min(8, max(int(samples), 1)) + 1)     # driver.batch_count
+                  if max(int(samples), 1) % b == 0)
+    kept = sum(RESULT_BYTES_PER_TEXEL * n + RESULT_BYTES_PER_PIXEL * r * r + batch_means_bytes(n, batches)
+               for n, r in zip(counts, sides))
     n = max(counts, default=0)
     working = max(RASTER_BYTES_PER_TEXEL * n + CANDIDATE_BYTES * min(MAX_CANDIDATES, 4 * n + 1),
-                  TRACE_BYTES_PER_TEXEL * n + int(threads) * min(int(paths_per_unit), n * int(samples)) * PATH_BYTES,
+                  TRACE_BYTES_PER_TEXEL * n + int(threads) * (min(int(paths_per_unit), n * int(samples)) * PATH_BYTES
+                                                              + REUSE_BLOCK_BYTES),
                   STATISTICS_BYTES_PER_TEXEL * n,
                   FINISH_BYTES_PER_PIXEL * pixels if counts else 0)
     return kept + working + TRIANGLE_BYTES * int(n_triangles) + FIXED_BYTES
+
+
+def batch_means_bytes(n_texels, batches):
+    """Bytes of the batch means an object of ``n_texels`` baked in ``batches`` keeps (0: none)."""
+    size = int(batches) * int(n_texels) * 12
+    return size if int(batches) > 1 and size <= BATCH_MEANS_BYTES else 0

@@ -34,7 +34,7 @@ class ObjectBake:
     raw_image       (R, R, 4) the path-traced image when ``image`` was denoised, else None
     denoised_value  (n, 3) the denoised texels when ``image`` was denoised, else None
     batch_means     (B, n, 3) float32 each independent batch's texel means (None: one batch, or
-                    a bake larger than ``driver.BATCH_MEANS_BYTES``): :meth:`mean_and_error`
+                    a bake larger than ``memory.BATCH_MEANS_BYTES``): :meth:`mean_and_error`
     """
 
     name: str
