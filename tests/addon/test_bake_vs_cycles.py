@@ -104,9 +104,12 @@ def design_effect(ours, var_o):
 
 
 def assert_means_agree(ours, cyc, var_o, var_c):
+    """``ours`` from :func:`compare` carries the variance of its mean from the batches; other
+    independent per-texel estimates (``var_o``) give ``Σ var_o / n²``."""
     n = len(ours)
     diff = np.asarray(ours).mean(axis=0) - cyc.mean(axis=0)
-    sigma = np.sqrt(ours.mean_var + var_c.sum(axis=0) / n ** 2)
+    mean_var = getattr(ours, "mean_var", None)
+    sigma = np.sqrt((var_o.sum(axis=0) / n ** 2 if mean_var is None else mean_var) + var_c.sum(axis=0) / n ** 2)
     assert np.all(np.abs(diff) <= K * sigma), f"mean difference {diff} vs {K} x sigma {sigma}"
     return diff / cyc.mean(axis=0), sigma / cyc.mean(axis=0)
 
