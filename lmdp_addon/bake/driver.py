@@ -245,7 +245,8 @@ def trace_unit(tracer, job, unit_id):
     tiles = None
     if tracer.path_reuse > 1 and control is None:     # path reuse: the tile of every path (bake/reuse)
         texel = np.tile(np.repeat(np.arange(lo, hi), per_batch), group)
-        sample = b0 * per_batch + np.arange(k * group) // k * per_batch + np.tile(np.arange(per_batch), (hi - lo) * group)
+        batch = b0 + np.arange(k * group) // k                      # each path's batch and sample in it
+        sample = batch * per_batch + np.tile(np.arange(per_batch), (hi - lo) * group)
         tiles = reuse.groups(job.texels.row[texel], job.texels.col[texel], sample, tracer.path_reuse)
     values, st = tracer.trace(position, normal, np.tile(np.repeat(states[lo:hi], per_batch), group),
                               u, u_mix, rng, triangles=np.tile(np.repeat(triangles[lo:hi], per_batch), group),

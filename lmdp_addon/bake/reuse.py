@@ -113,7 +113,7 @@ class FirstBounce:
         self.lambertian[idx] = True if glossy is None else ~glossy
 
 
-#: Pairs (texel, first hit) per block of :func:`combine` (bounds its temporaries: ~40 bytes a pair).
+#: Pairs (texel, first hit) per block of :func:`combine` (bounds its temporaries: ``memory.REUSE_BLOCK_BYTES``).
 PAIRS_PER_BLOCK = 1 << 19
 
 
@@ -183,7 +183,8 @@ def _tile_weights(tracer, first, m, valid, shared, stats):
         p = np.zeros_like(f)
         live = np.flatnonzero(ok)
         rows_i = np.take(m.reshape(-1), live // K)
-        p.reshape(-1)[live] = tracer.directions.density(np.take(first.nrm, rows_i, axis=0), np.take(first.states, rows_i),
+        p.reshape(-1)[live] = tracer.directions.density(np.take(first.nrm, rows_i, axis=0),
+                                                        np.take(first.states, rows_i),
                                                         _columns(tx, ty, tz, live), True) * area.reshape(-1)[live]
     D = p.sum(axis=1)                                                            # Σ_k p_k(y_j)  (G, K_j)
     return f / np.where(D > 0, D, np.float32(1.0))[:, None, :]                    # f = 0 where D = 0
