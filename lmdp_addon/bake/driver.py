@@ -46,7 +46,7 @@ from .checks import check_bake, check_texels, object_index, object_texels
 from .clamp import SampleClamp
 from .content import BakeContent
 from .gather import build_gather
-from .memory import batch_means_bytes
+from .memory import MAX_BATCHES, batch_count, batch_means_bytes   # the batches (memory counts them)
 from .guide import build_guide
 from .residual import ControlVariate
 from .splitting import SplitField
@@ -86,16 +86,8 @@ def bake_threads(cap=None):
 
 #: Work units in flight by default (every core).
 BAKE_THREADS = bake_threads()
-#: Most independent batches per texel (for the standard error).
-MAX_BATCHES = 8
 #: Texels whose nearest states are looked up at once.
 STATE_LOOKUP_CHUNK = 1 << 18
-
-
-def batch_count(samples):
-    """Largest divisor of ``samples`` that is at most :data:`MAX_BATCHES`."""
-    samples = int(samples)
-    return max(b for b in range(1, min(MAX_BATCHES, samples) + 1) if samples % b == 0)
 
 
 def work_units(n_texels, batches, per_batch, min_units=MIN_UNITS):

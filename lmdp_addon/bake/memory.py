@@ -2,8 +2,9 @@
 
 The bake holds, for every baked object until it returns (``results.ObjectBake``): its texels
 (:data:`~lmdp_addon.bake.texels.TEXEL_BYTES` each), their value and standard error (2 x 3
-float32), their batch means up to :data:`BATCH_MEANS_BYTES` and its R x R RGBA float32 image; the Blender layer then writes each image into a Blender
-image of the same size. While one object is baked it needs, on top, the largest of:
+float32), their batch means up to :data:`BATCH_MEANS_BYTES` and its R x R RGBA float32 image;
+the Blender layer then writes each image into a Blender image of the same size. While one
+object is baked it needs, on top, the largest of:
 
 * rasterising it (``texels.RASTER_BYTES_PER_TEXEL`` per texel and a chunk of candidates);
 * tracing it: the running sums of the batch means and their squares (2 x 3 float64), the nearest
@@ -21,6 +22,8 @@ checks it against a bake's traced peak).
 from .reuse import PAIRS_PER_BLOCK
 from .texels import MAX_CANDIDATES, RASTER_BYTES_PER_TEXEL, TEXEL_BYTES
 
+#: Most independent batches per texel (for the standard error; the bake's, ``driver``).
+MAX_BATCHES = 8
 #: Largest (batches x texels x 3) float32 array of batch means an ObjectBake keeps
 #: (``ObjectBake.batch_means``: the errors of a region's mean); larger bakes keep none.
 BATCH_MEANS_BYTES = 64 << 20
@@ -56,8 +59,7 @@ def estimate_bake_bytes(texel_counts, resolution, samples, n_triangles, threads,
     counts = [int(n) for n in texel_counts]
     sides = [int(r) for r in resolution] if hasattr(resolution, "__len__") else [int(resolution)] * len(counts)
     pixels = max(sides, default=0) ** 2
-    batches = max(b for b in range(1, min(8, max(int(samples), 1)) + 1)     # driver.batch_count
-                  if max(int(samples), 1) % b == 0)
+    batches = batch_count(max(int(samples), 1))
     kept = sum(RESULT_BYTES_PER_TEXEL * n + RESULT_BYTES_PER_PIXEL * r * r + batch_means_bytes(n, batches)
                for n, r in zip(counts, sides))
     n = max(counts, default=0)
@@ -67,6 +69,12 @@ def estimate_bake_bytes(texel_counts, resolution, samples, n_triangles, threads,
                   STATISTICS_BYTES_PER_TEXEL * n,
                   FINISH_BYTES_PER_PIXEL * pixels if counts else 0)
     return kept + working + TRIANGLE_BYTES * int(n_triangles) + FIXED_BYTES
+
+
+def batch_count(samples):
+    """Largest divisor of ``samples`` that is at most :data:`MAX_BATCHES`: the bake's batches."""
+    samples = int(samples)
+    return max(b for b in range(1, min(MAX_BATCHES, samples) + 1) if samples % b == 0)
 
 
 def batch_means_bytes(n_texels, batches):
